@@ -1,0 +1,28 @@
+# Quick start: `make sim` flies the default simulated flight; `make test` runs the test suite.
+PY ?= python3
+VENV := .venv
+STAMP := $(VENV)/.installed
+
+.PHONY: sim test lint bench clean
+
+$(STAMP): pyproject.toml
+	$(PY) -m venv $(VENV)
+	$(VENV)/bin/python -m pip install --quiet --upgrade pip
+	$(VENV)/bin/python -m pip install --quiet -e '.[dev]'
+	touch $(STAMP)
+
+sim: $(STAMP)
+	$(VENV)/bin/gsoe sim --out out/sim
+
+test: $(STAMP)
+	$(VENV)/bin/python -m pytest -q
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check gsoe fusion nav sim tests
+	$(VENV)/bin/mypy gsoe fusion
+
+bench: $(STAMP)
+	$(VENV)/bin/gsoe bench
+
+clean:
+	rm -rf $(VENV) out

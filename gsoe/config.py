@@ -1,0 +1,284 @@
+"""Validated, frozen configuration for the optical estimator, and the generic loader every package uses.
+
+A configuration is a tree of frozen dataclasses.  :func:`build` turns a plain mapping (what ``tomllib`` gives)
+into one, rejecting unknown keys, wrong types and out-of-range values with a :class:`ConfigError` whose message
+starts with the dotted name of the bad field (``stab.template_px: must be odd, got 18``).  Reading files is the
+caller's business (:mod:`nav.configfile`); this module is pure.
+
+Degrees appear here (``*_deg``) because configuration is an edge; code reads the ``*_rad`` properties.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import types
+import typing
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any, Literal, TypeVar, get_args, get_origin
+
+T = TypeVar("T")
+
+
+class ConfigError(ValueError):
+    """A configuration value is missing, unknown, of the wrong type or out of range; the message names it."""
+
+    def __init__(self, field_path: str, message: str) -> None:
+        super().__init__(f"{field_path}: {message}")
+        self.field_path = field_path
+
+
+def require(cond: bool, field_name: str, message: str) -> None:
+    """Raise ``ConfigError(field_name, message)`` unless ``cond``; used in ``__post_init__`` validators."""
+    if not cond:
+        raise ConfigError(field_name, message)
+
+
+def in_range(value: float, lo: float, hi: float, field_name: str, *, lo_open: bool = False) -> None:
+    ok = math.isfinite(value) and (value > lo if lo_open else value >= lo) and value <= hi
+    bracket = "(" if lo_open else "["
+    require(ok, field_name, f"must be in {bracket}{lo}, {hi}], got {value!r}")
+
+
+def _coerce(tp: Any, value: Any, path: str) -> Any:
+    origin = get_origin(tp)
+    if tp is Any:
+        return value
+    if origin is Literal:
+        allowed = get_args(tp)
+        if value not in allowed:
+            raise ConfigError(path, f"must be one of {list(allowed)}, got {value!r}")
+        return value
+    if origin in (typing.Union, types.UnionType):
+        args = get_args(tp)
+        if value is None and type(None) in args:
+            return None
+        errors = []
+        for a in args:
+            if a is type(None):
+                continue
+            try:
+                return _coerce(a, value, path)
+            except ConfigError as e:
+                errors.append(str(e))
+        raise ConfigError(path, f"invalid value {value!r}")
+    if dataclasses.is_dataclass(tp) and isinstance(tp, type):
+        if not isinstance(value, Mapping):
+            raise ConfigError(path, f"must be a table, got {type(value).__name__}")
+        return build(tp, value, path)
+    if origin is tuple:
+        args = get_args(tp)
+        if not isinstance(value, list | tuple):
+            raise ConfigError(path, f"must be a list, got {type(value).__name__}")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_coerce(args[0], v, f"{path}[{i}]") for i, v in enumerate(value))
+        if len(value) != len(args):
+            raise ConfigError(path, f"must have {len(args)} elements, got {len(value)}")
+        return tuple(_coerce(a, v, f"{path}[{i}]") for i, (a, v) in enumerate(zip(args, value, strict=True)))
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(path, f"must be true or false, got {value!r}")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(path, f"must be an integer, got {value!r}")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise ConfigError(path, f"must be a number, got {value!r}")
+        if not math.isfinite(float(value)):
+            raise ConfigError(path, f"must be finite, got {value!r}")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(path, f"must be a string, got {value!r}")
+        return value
+    raise ConfigError(path, f"unsupported type {tp!r}")
+
+
+def build(cls: type[T], data: Mapping[str, Any], where: str = "") -> T:
+    """Build dataclass ``cls`` from ``data``; errors name the field as ``where.field``."""
+    if not isinstance(data, Mapping):
+        raise ConfigError(where or cls.__name__, f"must be a table, got {type(data).__name__}")
+    fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    hints = typing.get_type_hints(cls)
+
+    def full(name: str) -> str:
+        return f"{where}.{name}" if where else name
+
+    for key in data:
+        if key not in fields:
+            raise ConfigError(full(key), f"unknown key (known: {', '.join(sorted(fields))})")
+    kwargs: dict[str, Any] = {}
+    for name, f in fields.items():
+        if name in data:
+            kwargs[name] = _coerce(hints[name], data[name], full(name))
+        elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+            raise ConfigError(full(name), "missing")
+    try:
+        return cls(**kwargs)
+    except ConfigError as e:
+        if where and not e.field_path.startswith(where + "."):
+            raise ConfigError(full(e.field_path), str(e).split(": ", 1)[1]) from None
+        raise
+
+
+def to_dict(obj: Any) -> dict[str, Any]:
+    """Plain-dict form of a config dataclass (for logs and metrics)."""
+    return dataclasses.asdict(obj)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Optical estimator configuration
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """A calibrated camera (the *camera file*, see ``config/camera/*.toml``).
+
+    ``model`` is ``"fisheye"`` (OpenCV ``cv2.fisheye``, Kannala-Brandt, ``dist = [k1, k2, k3, k4]``) or
+    ``"pinhole"`` (OpenCV radial-tangential, ``dist = [k1, k2, p1, p2, k3]``).  ``mount_rpy_deg`` is the camera's
+    small misalignment in the body frame on top of the nominal belly mounting (see :mod:`gsoe`).
+    ``hfov_deg``/``vfov_deg`` are the nominal fields of view the paper's eq. 2-3 and 10-11 use.
+    """
+
+    model: Literal["fisheye", "pinhole"]
+    width_px: int
+    height_px: int
+    fx_px: float
+    fy_px: float
+    cx_px: float
+    cy_px: float
+    dist: tuple[float, ...]
+    hfov_deg: float
+    vfov_deg: float
+    mount_rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    rms_px: float | None = None
+
+    def __post_init__(self) -> None:
+        in_range(self.width_px, 16, 16384, "width_px")
+        in_range(self.height_px, 16, 16384, "height_px")
+        in_range(self.fx_px, 1.0, 1e5, "fx_px")
+        in_range(self.fy_px, 1.0, 1e5, "fy_px")
+        in_range(self.cx_px, 0.0, self.width_px, "cx_px")
+        in_range(self.cy_px, 0.0, self.height_px, "cy_px")
+        in_range(self.hfov_deg, 1.0, 360.0, "hfov_deg")
+        in_range(self.vfov_deg, 1.0, 360.0, "vfov_deg")
+        need = 4 if self.model == "fisheye" else 5
+        require(len(self.dist) == need, "dist", f"{self.model} model needs {need} coefficients, got {len(self.dist)}")
+        for i, d in enumerate(self.dist):
+            require(math.isfinite(d) and abs(d) < 10.0, f"dist[{i}]", f"must be finite and |d| < 10, got {d!r}")
+        for i, a in enumerate(self.mount_rpy_deg):
+            in_range(a, -30.0, 30.0, f"mount_rpy_deg[{i}]")
+
+
+@dataclass(frozen=True)
+class StabConfig:
+    """Virtual nadir camera: base image and template geometry in the stabilised frame ``s``.
+
+    ``base_cross_px`` x ``base_along_px`` is the base image (the paper: 121 across x 73 along).  ``template_start``
+    is where the template starts on the base image: ``"centre"`` (the paper) or ``"trailing"`` (near the trailing
+    edge, so it can travel the whole base image).  ``focal_px`` is the virtual camera's focal length (0: the raw
+    camera's ``fx_px``), which sets ``gsd_m_px = height_agl_m / focal_px``.  ``map_grid_px`` is the spacing of the
+    coarse grid of projected rays from which the sampling map is interpolated.
+    """
+
+    base_cross_px: int = 121
+    base_along_px: int = 73
+    template_px: int = 19
+    template_start: Literal["centre", "trailing"] = "centre"
+    focal_px: float = 0.0
+    map_grid_px: int = 8
+    roll_limit_deg: float = 45.0
+    pitch_limit_deg: float = 20.0
+    use_gyro: bool = True
+    scale_template_to_base: bool = True
+
+    def __post_init__(self) -> None:
+        in_range(self.base_cross_px, 9, 2001, "base_cross_px")
+        in_range(self.base_along_px, 9, 2001, "base_along_px")
+        in_range(self.template_px, 3, 201, "template_px")
+        require(self.template_px % 2 == 1, "template_px", f"must be odd, got {self.template_px}")
+        require(self.base_cross_px % 2 == 1, "base_cross_px", f"must be odd, got {self.base_cross_px}")
+        require(self.base_along_px % 2 == 1, "base_along_px", f"must be odd, got {self.base_along_px}")
+        require(self.template_px + 4 <= min(self.base_cross_px, self.base_along_px), "template_px",
+                "must be at least 4 px smaller than both base image sides")
+        in_range(self.focal_px, 0.0, 1e5, "focal_px")
+        in_range(self.map_grid_px, 1, 256, "map_grid_px")
+        in_range(self.roll_limit_deg, 0.0, 89.0, "roll_limit_deg")
+        in_range(self.pitch_limit_deg, 0.0, 89.0, "pitch_limit_deg")
+
+
+@dataclass(frozen=True)
+class MatchConfig:
+    """Template matching (paper 2.4) and its quality gates.
+
+    ``psr_min``: peak-to-sidelobe ratio of the SSD surface below which a match is invalid; ``texture_std_min``:
+    minimum intensity standard deviation (0-255 scale) of the template; ``sidelobe_exclude_px``: half-width of the
+    window around the peak excluded from the sidelobe statistics.
+    """
+
+    method: Literal["exhaustive", "three_step", "diamond"] = "exhaustive"
+    subpixel: bool = True
+    psr_min: float = 3.0
+    texture_std_min: float = 4.0
+    sidelobe_exclude_px: int = 2
+
+    def __post_init__(self) -> None:
+        in_range(self.psr_min, 0.0, 1e3, "psr_min")
+        in_range(self.texture_std_min, 0.0, 255.0, "texture_std_min")
+        in_range(self.sidelobe_exclude_px, 0, 50, "sidelobe_exclude_px")
+
+
+@dataclass(frozen=True)
+class CycleConfig:
+    """TM cycle (paper 2.4-2.5): sample rate and the conditions that start a new cycle.
+
+    A new cycle starts when the template comes within ``edge_margin_px`` of the base image edge (the critical
+    position), after ``max_cycle_s``, or when the data filter of eq. 6 fires: both components of the per-frame
+    template step change by at least ``data_filter_zeta_px`` (``data_filter`` on).
+    """
+
+    rate_hz: float = 30.0
+    edge_margin_px: int = 1
+    max_cycle_s: float = 3.0
+    data_filter: bool = True
+    data_filter_zeta_px: float = 4.0
+
+    def __post_init__(self) -> None:
+        in_range(self.rate_hz, 1.0, 240.0, "rate_hz")
+        in_range(self.edge_margin_px, 0, 50, "edge_margin_px")
+        in_range(self.max_cycle_s, 0.05, 60.0, "max_cycle_s")
+        in_range(self.data_filter_zeta_px, 0.0, 100.0, "data_filter_zeta_px")
+
+
+@dataclass(frozen=True)
+class IntegrityConfig:
+    """The paper's heuristic data-integrity filter (2.7), kept as the baseline the EKF replaces.
+
+    A cycle's drift is released when it agrees within ``max_jump_deg`` with the median of the last
+    ``history_cycles`` released cycles and the cycle had at least ``min_steps`` valid matches.
+    """
+
+    history_cycles: int = 5
+    max_jump_deg: float = 5.0
+    min_steps: int = 3
+    min_travel_px: float = 4.0
+
+    def __post_init__(self) -> None:
+        in_range(self.history_cycles, 1, 100, "history_cycles")
+        in_range(self.max_jump_deg, 0.0, 180.0, "max_jump_deg")
+        in_range(self.min_steps, 1, 1000, "min_steps")
+        in_range(self.min_travel_px, 0.0, 1000.0, "min_travel_px")
+
+
+@dataclass(frozen=True)
+class GsoeConfig:
+    """Everything the optical estimator needs (``config/default.toml`` sections ``[stab]``, ``[match]``, ...)."""
+
+    camera: CameraConfig
+    stab: StabConfig = field(default_factory=StabConfig)
+    match: MatchConfig = field(default_factory=MatchConfig)
+    cycle: CycleConfig = field(default_factory=CycleConfig)
+    integrity: IntegrityConfig = field(default_factory=IntegrityConfig)

@@ -1,0 +1,65 @@
+"""Timestamped samples in and estimates out of the optical estimator (frames and units as in :mod:`gsoe`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+
+@dataclass(frozen=True, slots=True)
+class AttitudeSample:
+    """AHRS attitude (3-2-1 Euler, body FRD relative to NED) at ``t_us``."""
+
+    t_us: int
+    roll_rad: float
+    pitch_rad: float
+    yaw_rad: float
+
+
+@dataclass(frozen=True, slots=True)
+class ImuSample:
+    """IMU sample at ``t_us``: body rates and specific force, both in the body frame (FRD)."""
+
+    t_us: int
+    gyro_b_rad_s: NDArray[np.float64]
+    accel_b_m_s2: NDArray[np.float64]
+
+
+@dataclass(frozen=True, slots=True)
+class MatchQuality:
+    """Quality of one template match: peak-to-sidelobe ratio, template texture (intensity std, 0-255), SSD at the
+    best match per pixel, and the verdict."""
+
+    psr: float
+    texture_std: float
+    ssd_per_px: float
+    valid: bool
+
+
+@dataclass(frozen=True, slots=True)
+class GsoeStep:
+    """One optical measurement: the template's accumulated migration since the cycle's base snapshot.
+
+    ``dx_px`` cross track (right of ``base_yaw_rad``), ``dy_px`` along track (forward), both in the stabilised
+    frame ``s`` of the cycle, whose ground sample distance at the base snapshot was ``gsd_m_px`` (with the height
+    ``height_agl_m`` used for it).  ``t_us`` is the current frame's exposure time, ``base_t_us`` the base
+    snapshot's.  ``rel_rot_rad`` is the size of the rotation between the base and current camera poses (what the
+    attitude-induced pixel error scales with).
+    """
+
+    t_us: int
+    base_t_us: int
+    cycle_id: int
+    step: int
+    dx_px: float
+    dy_px: float
+    base_yaw_rad: float
+    gsd_m_px: float
+    height_agl_m: float
+    focal_px: float
+    rel_rot_rad: float
+    quality: MatchQuality
+    valid: bool
+    new_cycle: bool

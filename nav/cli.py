@@ -1,0 +1,59 @@
+"""The ``gsoe`` command line.  Each subcommand lives in its own module with ``add_arguments(parser)`` and
+``run(args) -> int``; modules are imported only when their subcommand runs, so one heavy dependency never slows
+the others down."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import importlib.util
+import logging
+import sys
+
+from gsoe.config import ConfigError
+
+# subcommand -> (module, one-line help)
+SUBCOMMANDS: dict[str, tuple[str, str]] = {
+    "calibrate": ("nav.cmd_calibrate", "calibrate a camera from chessboard images and write a camera file"),
+    "render": ("nav.cmd_render", "render one raw fisheye camera frame to PNG"),
+    "bench": ("nav.cmd_bench", "benchmark the per-frame optical pipeline, renderer and EKF step"),
+    "sim": ("nav.cmd_sim", "fly a simulated scenario (default: the paper's SIL flight) and report"),
+    "replay": ("nav.cmd_replay", "replay a real flight log (.tlog, .bin, .ulg) through the EKF"),
+    "companion": ("nav.cmd_companion", "run the companion app next to an autopilot"),
+    "montecarlo": ("nav.cmd_montecarlo", "run a seeded Monte Carlo campaign of simulated flights"),
+}
+
+
+def _available() -> dict[str, tuple[str, str]]:
+    return {k: v for k, v in SUBCOMMANDS.items() if importlib.util.find_spec(v[0]) is not None}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="gsoe", description="Ground Speed Optical Estimator navigation module")
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", required=True)
+    argv = sys.argv[1:] if argv is None else argv
+    chosen = next((a for a in argv if not a.startswith("-")), None)
+    for name, (mod_name, help_text) in _available().items():
+        sp = sub.add_parser(name, help=help_text)
+        if name == chosen:
+            importlib.import_module(mod_name).add_arguments(sp)
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    module = importlib.import_module(SUBCOMMANDS[args.command][0])
+    try:
+        return int(module.run(args) or 0)
+    except ConfigError as e:
+        print(f"gsoe {args.command}: configuration error: {e}", file=sys.stderr)
+        return 2
+    except FileNotFoundError as e:
+        print(f"gsoe {args.command}: file not found: {e.filename or e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"gsoe {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
