@@ -53,7 +53,7 @@ def test_project_unproject_round_trip(camera, model):
 
 def test_fisheye_field_of_view_matches_config(camera):
     # independent truth: the Kannala-Brandt radius r = f * theta * (1 + k1 theta^2) at the half fields
-    for half_deg, axis in ((55.0, 0), (43.75, 1)):
+    for half_deg, axis in ((54.0, 0), (43.0, 1)):
         t = np.deg2rad(half_deg)
         ray = np.array([np.sin(t), 0.0, np.cos(t)]) if axis == 0 else np.array([0.0, np.sin(t), np.cos(t)])
         px, valid = camera.project(ray[None])
