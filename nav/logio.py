@@ -1,0 +1,131 @@
+"""The project's log format: one folder per run or flight, one CSV file per stream.
+
+Format (documented once, read by ``pandas.read_csv(path)`` or ``numpy.genfromtxt(path, delimiter=",",
+names=True)``): the first line is the header of column names, each with its unit suffix (``t_us``,
+``roll_rad``, ``wind_n_m_s``); every following line is one record; booleans are written 0/1; a missing or
+invalid number is written ``nan``.  Every stream starts with ``t_us`` (integer microseconds of one clock:
+simulation time in ``gsoe sim``, the companion's monotonic clock in flight).  Streams used by ``gsoe sim`` and
+the companion: ``truth.csv`` (simulator only), ``imu.csv``, ``attitude.csv``, ``airspeed.csv``, ``baro.csv``,
+``gnss.csv``, ``gsoe.csv`` (optical steps), ``baseline.csv`` (the paper's filtered drift), ``ekf.csv`` (EKF
+outputs with sigmas), ``aid_status.csv`` (per aid source and step: innovation, variance, test ratio, fused),
+``outputs.csv`` (what was sent to the autopilot).
+
+Writes are append-only and flushed to the OS at least every ``flush_interval_s`` (and on close), so a killed
+process loses at most that much; a partially written last line is dropped by readers (``read_log``).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import os
+import time
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+DEFAULT_FLUSH_INTERVAL_S = 0.5
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, bool):
+        return "1" if v else "0"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        return "nan" if not math.isfinite(v) else repr(v)
+    if v is None:
+        return "nan"
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        return str(v).replace(",", ";").replace("\n", " ")
+    return "nan" if not math.isfinite(f) else repr(f)
+
+
+class CsvStream:
+    """One append-only CSV stream with a fixed header."""
+
+    def __init__(self, path: Path, columns: Sequence[str], flush_interval_s: float) -> None:
+        self.path = path
+        self.columns = tuple(columns)
+        new = not path.exists() or path.stat().st_size == 0
+        self._fh = path.open("a", buffering=1 << 16, newline="")
+        if new:
+            self._fh.write(",".join(self.columns) + "\n")
+        self._flush_interval_s = flush_interval_s
+        self._last_flush = time.monotonic()
+
+    def write(self, record: Mapping[str, Any]) -> None:
+        self._fh.write(",".join(_fmt(record.get(c)) for c in self.columns) + "\n")
+        now = time.monotonic()
+        if now - self._last_flush >= self._flush_interval_s:
+            self.flush()
+            self._last_flush = now
+
+    def flush(self) -> None:
+        self._fh.flush()
+
+    def close(self) -> None:
+        if not self._fh.closed:
+            self._fh.flush()
+            os.fsync(self._fh.fileno())
+            self._fh.close()
+
+
+class RunLog:
+    """A log folder of CSV streams, created on first write of each stream."""
+
+    def __init__(self, folder: str | Path, flush_interval_s: float = DEFAULT_FLUSH_INTERVAL_S) -> None:
+        self.folder = Path(folder)
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self._streams: dict[str, CsvStream] = {}
+        self._flush_interval_s = flush_interval_s
+
+    def write(self, stream: str, record: Mapping[str, Any]) -> None:
+        s = self._streams.get(stream)
+        if s is None:
+            s = CsvStream(self.folder / f"{stream}.csv", list(record.keys()), self._flush_interval_s)
+            self._streams[stream] = s
+        s.write(record)
+
+    def flush(self) -> None:
+        for s in self._streams.values():
+            s.flush()
+
+    def close(self) -> None:
+        for s in self._streams.values():
+            s.close()
+
+    def __enter__(self) -> RunLog:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def read_log(path: str | Path) -> dict[str, Any]:
+    """Read one stream into a dict of numpy arrays (column name -> array), dropping a torn last line."""
+    import numpy as np
+
+    text = Path(path).read_text()
+    lines = text.splitlines()
+    if not lines:
+        return {}
+    header = lines[0].split(",")
+    rows = [ln for ln in lines[1:] if ln.count(",") == len(header) - 1]
+    if text and not text.endswith("\n") and rows and rows[-1] == lines[-1]:
+        rows = rows[:-1]  # torn write
+    reader = csv.reader(io.StringIO("\n".join(rows)))
+    cols: list[list[str]] = [[] for _ in header]
+    for r in reader:
+        for i, v in enumerate(r):
+            cols[i].append(v)
+    out: dict[str, Any] = {}
+    for name, vals in zip(header, cols, strict=True):
+        try:
+            out[name] = np.array([float(v) for v in vals])
+        except ValueError:
+            out[name] = np.array(vals)
+    return out
