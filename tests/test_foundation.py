@@ -41,7 +41,8 @@ def test_rotation_is_ned_frd():
 def test_project_unproject_round_trip(camera, model):
     cfg = camera.config
     if model == "pinhole":
-        cfg = dataclasses.replace(cfg, model="pinhole", fx_px=280.0, fy_px=280.0, dist=(-0.05, 0.01, 0.001, -0.001, 0.0))
+        dist = (-0.05, 0.01, 0.001, -0.001, 0.0)
+        cfg = dataclasses.replace(cfg, model="pinhole", fx_px=280.0, fy_px=280.0, dist=dist)
     cam = CameraModel.from_config(cfg)
     rng = np.random.default_rng(1)
     px = np.column_stack([rng.uniform(5, 795, 500), rng.uniform(5, 595, 500)])
