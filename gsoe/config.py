@@ -181,7 +181,9 @@ class StabConfig:
     is where the template starts on the base image: ``"centre"`` (the paper) or ``"trailing"`` (near the trailing
     edge, so it can travel the whole base image).  ``focal_px`` is the virtual camera's focal length (0: the raw
     camera's ``fx_px``), which sets ``gsd_m_px = height_agl_m / focal_px``.  ``map_grid_px`` is the spacing of the
-    coarse grid of projected rays from which the sampling map is interpolated.
+    coarse grid of projected rays from which the sampling map is interpolated.  ``use_gyro``: compose the template's
+    attitude from the base attitude and the gyro-integrated rotation since the base snapshot; ``gyro_bias_tau_s``:
+    time constant of the gyro-bias complementary filter (0: off).
     """
 
     base_cross_px: int = 121
@@ -193,6 +195,7 @@ class StabConfig:
     roll_limit_deg: float = 45.0
     pitch_limit_deg: float = 20.0
     use_gyro: bool = True
+    gyro_bias_tau_s: float = 20.0
     scale_template_to_base: bool = True
 
     def __post_init__(self) -> None:
@@ -208,6 +211,7 @@ class StabConfig:
         in_range(self.map_grid_px, 1, 256, "map_grid_px")
         in_range(self.roll_limit_deg, 0.0, 89.0, "roll_limit_deg")
         in_range(self.pitch_limit_deg, 0.0, 89.0, "pitch_limit_deg")
+        in_range(self.gyro_bias_tau_s, 0.0, 3600.0, "gyro_bias_tau_s")
 
 
 @dataclass(frozen=True)

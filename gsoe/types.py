@@ -44,7 +44,7 @@ class GsoeStep:
 
     ``dx_px`` cross track (right of ``base_yaw_rad``), ``dy_px`` along track (forward), both in the stabilised
     frame ``s`` of the cycle, whose ground sample distance at the base snapshot was ``gsd_m_px`` (with the height
-    ``height_agl_m`` used for it).  ``t_us`` is the current frame's exposure time, ``base_t_us`` the base
+    ``height_agl_m`` used for it).  ``yaw_rad`` is the heading at the current frame.  ``t_us`` is the current frame's exposure time, ``base_t_us`` the base
     snapshot's.  ``rel_rot_rad`` is the size of the rotation between the base and current camera poses (what the
     attitude-induced pixel error scales with).
     """
@@ -56,6 +56,7 @@ class GsoeStep:
     dx_px: float
     dy_px: float
     base_yaw_rad: float
+    yaw_rad: float
     gsd_m_px: float
     height_agl_m: float
     focal_px: float

@@ -1,0 +1,192 @@
+"""The template-matching cycle (paper 2.4-2.6): base snapshot, template migration, new cycle conditions.
+
+:class:`GsoeEstimator` takes timestamped attitude and gyro samples (:meth:`push_attitude`, :meth:`push_imu`) and
+camera frames stamped at their exposure time (:meth:`process_frame`), and returns :class:`gsoe.types.GsoeStep`
+records: the template's accumulated migration since the base snapshot, in the cycle's stabilised frame.
+
+A cycle ends (and the next one starts from the same frame, so no frame is lost) when
+
+* the template's predicted next position would leave the base image (the critical position, paper 2.4),
+* the cycle has lasted ``cycle.max_cycle_s``,
+* the match is invalid (quality gates of :mod:`gsoe.matching`) or the data filter of eq. 6 fires,
+* the attitude leaves the stabilisable range or the stabilised patch leaves the raw frame.
+
+``template_start = "trailing"`` puts the base snapshot's nadir near the trailing (bottom) edge of the base image,
+so the template can travel almost the whole base image: the baseline, and so the angle resolution, grows.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from gsoe.angles import circular_mean, wrap_pi
+from gsoe.attitude import US_PER_S, AttitudeBuffer
+from gsoe.camera import CameraModel
+from gsoe.config import GsoeConfig
+from gsoe.integrity import data_filter_fires
+from gsoe.matching import match_template
+from gsoe.stabilise import VirtualNadirCamera
+from gsoe.types import AttitudeSample, GsoeStep, ImuSample, MatchQuality
+
+_NO_QUALITY = MatchQuality(psr=0.0, texture_std=0.0, ssd_per_px=math.nan, valid=False)
+
+
+def base_reference_px(cfg: GsoeConfig) -> tuple[float, float]:
+    """Pixel (u0, v0) of the base snapshot's nadir (= the template's start) in the base image."""
+    s = cfg.stab
+    u0 = (s.base_cross_px - 1) / 2.0
+    if s.template_start == "centre":
+        v0 = (s.base_along_px - 1) / 2.0
+    else:
+        v0 = s.base_along_px - 1 - (s.template_px - 1) / 2.0 - cfg.cycle.edge_margin_px
+    return u0, v0
+
+
+def chord_drift_rad(step: GsoeStep) -> float:
+    """Drift from a step's accumulated migration (eq. 9 generalised to turns).
+
+    The chord from the base nadir to the current nadir points along the course at the middle of the interval
+    (exact for a steady turn); the heading there is the circular mean of the base and current headings.
+    """
+    course = step.base_yaw_rad + math.atan2(step.dx_px, step.dy_px)
+    heading_mid = circular_mean(np.array([step.base_yaw_rad, step.yaw_rad]))
+    return float(wrap_pi(course - heading_mid))
+
+
+@dataclass
+class _Cycle:
+    cycle_id: int
+    base_t_us: int
+    base_yaw_rad: float
+    R_nb0: Rotation
+    base_image: NDArray[np.float32]
+    height_agl_m: float
+    gsd_m_px: float
+    step: int
+    last_xy: tuple[float, float]
+    last_step_xy: tuple[float, float] | None
+    n_valid: int
+
+
+class GsoeEstimator:
+    """The optical estimator.  Built fully configured; feed samples in time order."""
+
+    def __init__(self, cfg: GsoeConfig, camera: CameraModel) -> None:
+        self.cfg = cfg
+        self.camera = camera
+        s = cfg.stab
+        self.ref_uv = base_reference_px(cfg)
+        self.vcam = VirtualNadirCamera(camera, (s.base_cross_px, s.base_along_px), self.ref_uv, s.template_px,
+                                       s.focal_px, s.map_grid_px)
+        self.buffer = AttitudeBuffer(gyro_bias_tau_s=s.gyro_bias_tau_s)
+        half = (s.template_px - 1) / 2.0 + cfg.cycle.edge_margin_px
+        self._u_lim = (half, s.base_cross_px - 1 - half)
+        self._v_lim = (half, s.base_along_px - 1 - half)
+        self._roll_lim = math.radians(s.roll_limit_deg)
+        self._pitch_lim = math.radians(s.pitch_limit_deg)
+        self._max_cycle_us = int(cfg.cycle.max_cycle_s * US_PER_S)
+        self._cycle: _Cycle | None = None
+        self._next_id = 0
+
+    @property
+    def focal_px(self) -> float:
+        return self.vcam.focal_px
+
+    @property
+    def cycle_base(self) -> NDArray[np.float32] | None:
+        """The current cycle's base image (for figures)."""
+        return None if self._cycle is None else self._cycle.base_image
+
+    def push_attitude(self, s: AttitudeSample) -> bool:
+        return self.buffer.push_attitude(s)
+
+    def push_imu(self, s: ImuSample) -> bool:
+        return self.buffer.push_imu(s)
+
+    # ------------------------------------------------------------------------------------------------------
+    def process_frame(self, t_us: int, image: NDArray, height_agl_m: float = math.nan) -> list[GsoeStep]:
+        """Process one raw frame exposed at ``t_us``; returns 0-2 steps (a cycle's last step, a new base)."""
+        w, h = self.camera.size_px
+        if image is None or image.ndim not in (2, 3) or image.shape[0] != h or image.shape[1] != w:
+            self._cycle = None
+            return []
+        att = self.buffer.attitude_at(t_us)
+        if att is None or not self._attitude_ok(att):
+            self._cycle = None
+            return []
+        c = self._cycle
+        if c is None:
+            return self._start(t_us, image, att, height_agl_m)
+        rel = self.buffer.relative_rotation(c.base_t_us, t_us, self.cfg.stab.use_gyro)
+        R_nb = c.R_nb0 * rel if rel is not None else att
+        ratio = c.height_agl_m / height_agl_m if (math.isfinite(height_agl_m) and height_agl_m > 0
+                                                  and math.isfinite(c.height_agl_m)) else 1.0
+        if not self.cfg.stab.scale_template_to_base:
+            ratio = 1.0
+        yaw_now = float(R_nb.as_euler("ZYX")[0])
+        tpl = self.vcam.sample_template(image, R_nb, c.base_yaw_rad, ratio)
+        c.step += 1
+        if not tpl.valid:
+            return [self._step(t_us, c, c.last_xy, _NO_QUALITY, False, yaw_now, rel)] + self._restart(
+                t_us, image, att, height_agl_m, c)
+        pred = c.last_xy if c.last_step_xy is None else (c.last_xy[0] + c.last_step_xy[0],
+                                                          c.last_xy[1] + c.last_step_xy[1])
+        res = match_template(c.base_image, tpl.image, self.cfg.match, pred)
+        xy = (res.x_px, res.y_px)
+        step_xy = (xy[0] - c.last_xy[0], xy[1] - c.last_xy[1])
+        filtered = (self.cfg.cycle.data_filter and c.last_step_xy is not None
+                    and data_filter_fires(c.last_step_xy, step_xy, self.cfg.cycle.data_filter_zeta_px))
+        valid = res.quality.valid and not filtered
+        out = [self._step(t_us, c, xy, res.quality, valid, yaw_now, rel)]
+        if not valid:
+            return out + self._restart(t_us, image, att, height_agl_m, c)
+        c.n_valid += 1
+        c.last_step_xy = step_xy
+        c.last_xy = xy
+        nxt = (xy[0] + step_xy[0], xy[1] + step_xy[1])
+        at_edge = not (self._u_lim[0] <= nxt[0] <= self._u_lim[1] and self._v_lim[0] <= nxt[1] <= self._v_lim[1])
+        if at_edge or t_us - c.base_t_us >= self._max_cycle_us:
+            return out + self._restart(t_us, image, att, height_agl_m, c)
+        return out
+
+    # ------------------------------------------------------------------------------------------------------
+    def _attitude_ok(self, att: Rotation) -> bool:
+        _, pitch, roll = att.as_euler("ZYX")
+        return abs(roll) <= self._roll_lim and abs(pitch) <= self._pitch_lim
+
+    def _restart(self, t_us: int, image: NDArray, att: Rotation, height_agl_m: float, old: _Cycle) -> list[GsoeStep]:
+        if old.n_valid > 0:
+            self.buffer.update_bias(old.base_t_us, t_us)
+        self._cycle = None
+        return self._start(t_us, image, att, height_agl_m)
+
+    def _start(self, t_us: int, image: NDArray, att: Rotation, height_agl_m: float) -> list[GsoeStep]:
+        yaw0 = float(att.as_euler("ZYX")[0])
+        patch = self.vcam.sample_base(image, att, yaw0)
+        if not patch.valid:
+            return []
+        h_ok = math.isfinite(height_agl_m) and height_agl_m > 0
+        c = _Cycle(cycle_id=self._next_id, base_t_us=t_us, base_yaw_rad=yaw0, R_nb0=att, base_image=patch.image,
+                   height_agl_m=height_agl_m if h_ok else math.nan,
+                   gsd_m_px=height_agl_m / self.focal_px if h_ok else math.nan,
+                   step=0, last_xy=self.ref_uv, last_step_xy=None, n_valid=0)
+        self._next_id += 1
+        self._cycle = c
+        q = MatchQuality(psr=math.inf, texture_std=float(np.std(patch.image)), ssd_per_px=0.0, valid=True)
+        return [self._step(t_us, c, self.ref_uv, q, True, yaw0, Rotation.identity(), new_cycle=True)]
+
+    def _step(self, t_us: int, c: _Cycle, xy: tuple[float, float], q: MatchQuality, valid: bool, yaw_rad: float,
+              rel: Rotation | None, new_cycle: bool = False) -> GsoeStep:
+        u0, v0 = self.ref_uv
+        return GsoeStep(
+            t_us=t_us, base_t_us=c.base_t_us, cycle_id=c.cycle_id, step=c.step,
+            dx_px=float(xy[0] - u0), dy_px=float(v0 - xy[1]),
+            base_yaw_rad=c.base_yaw_rad, yaw_rad=yaw_rad, gsd_m_px=c.gsd_m_px, height_agl_m=c.height_agl_m,
+            focal_px=self.focal_px, rel_rot_rad=float(rel.magnitude()) if rel is not None else math.nan,
+            quality=q, valid=valid, new_cycle=new_cycle,
+        )

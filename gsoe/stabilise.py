@@ -1,0 +1,141 @@
+"""Attitude-stabilised cropping: the *virtual nadir camera* (paper 2.2-2.3, generalised to full attitude).
+
+A pixel ``(u, v)`` of a stabilised image (frame ``s``, see :mod:`gsoe`) looks at the flat ground point
+``right = (u - u0) * g``, ``forward = (v0 - v) * g`` metres from a reference ground point, in a level frame rotated
+by the cycle's base heading; ``g`` is the ground sample distance and ``(u0, v0)`` the pixel of the reference.
+For the base image the reference is the nadir point at the base snapshot; for a template it is the nadir point
+at the current frame.  The ray to that ground point, in NED, is rotated into the body by the full attitude
+``R_nb`` (roll, pitch *and* yaw relative to the base heading), into the camera by ``R_cb`` and projected through
+the calibrated (fisheye) model into the raw frame; ``cv2.remap`` samples just those pixels.  The raw frame is
+never undistorted as a whole.
+
+Cost: rays are projected only on a coarse grid (every ``map_grid_px`` pixels plus the last row/column) and the
+sampling map is interpolated bilinearly between them with two small precomputed interpolation matrices
+(``A_v @ grid @ A_u.T``).  Fisheye distortion is smooth on that scale (the test bounds the interpolation error).
+
+The paper's own cropping point (eq. 2-3, roll and pitch only) is :func:`gsoe.equations.nadir_pixel_paper`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from gsoe.camera import CameraModel
+from gsoe.rotation import R_z
+
+# Paper eq. 4 weights (ITU-R BT.601 luma) for B, G, R as OpenCV orders them.
+_LUMA_BGR = np.array([0.114, 0.587, 0.299], dtype=np.float32)
+
+
+def to_intensity(image: NDArray) -> NDArray[np.float32]:
+    """Paper eq. 4: intensity = 0.299 R' + 0.587 G' + 0.114 B' (input BGR as OpenCV gives it; grey passes)."""
+    if image.ndim == 2:
+        return image.astype(np.float32, copy=False)
+    if image.ndim == 3 and image.shape[2] == 3:
+        return image.astype(np.float32, copy=False) @ _LUMA_BGR
+    raise ValueError(f"expected a grey (H, W) or BGR (H, W, 3) image, got shape {image.shape}")
+
+
+def _interp_matrix(n_out: int, step: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Grid node positions (0, step, 2 step, ..., n_out - 1) and the (n_out x n_nodes) linear interpolation
+    matrix from node values to every pixel."""
+    nodes = np.arange(0, n_out - 1, step, dtype=float)
+    nodes = np.append(nodes, float(n_out - 1)) if nodes.size == 0 or nodes[-1] != n_out - 1 else nodes
+    A = np.zeros((n_out, nodes.size))
+    x = np.arange(n_out, dtype=float)
+    j = np.clip(np.searchsorted(nodes, x, side="right") - 1, 0, nodes.size - 2) if nodes.size > 1 else np.zeros(
+        n_out, dtype=int)
+    if nodes.size == 1:
+        A[:, 0] = 1.0
+        return nodes, A
+    w = (x - nodes[j]) / (nodes[j + 1] - nodes[j])
+    A[np.arange(n_out), j] = 1.0 - w
+    A[np.arange(n_out), j + 1] = w
+    return nodes, A
+
+
+@dataclass(frozen=True)
+class Patch:
+    """A stabilised image: intensity (float32) and whether every sample fell inside the raw frame."""
+
+    image: NDArray[np.float32]
+    valid: bool
+
+
+class PatchSampler:
+    """Samples one stabilised patch geometry (``width_px`` x ``height_px``, reference pixel ``ref_uv``)."""
+
+    def __init__(self, camera: CameraModel, width_px: int, height_px: int, ref_uv: tuple[float, float],
+                 grid_px: int) -> None:
+        self.camera = camera
+        self.width_px = width_px
+        self.height_px = height_px
+        self.ref_uv = ref_uv
+        nodes_u, self._A_u = _interp_matrix(width_px, grid_px)
+        nodes_v, self._A_v = _interp_matrix(height_px, grid_px)
+        uu, vv = np.meshgrid(nodes_u, nodes_v)
+        # ground offsets of the grid nodes in pixels: forward (x) and right (y) in the heading frame
+        self._fwd_px = (ref_uv[1] - vv).ravel()
+        self._right_px = (uu - ref_uv[0]).ravel()
+        self._grid_shape = uu.shape
+        w, h = camera.size_px
+        self._raw_bounds = (w - 1.0, h - 1.0)
+
+    def sample_map(self, R_cn: NDArray[np.float64], base_yaw_rad: float, scale: float,
+                   offset_fwd_right_px: tuple[float, float] = (0.0, 0.0)
+                   ) -> tuple[NDArray[np.float32], NDArray[np.float32], bool]:
+        """Raw-frame sampling maps (map_x, map_y) for this patch.
+
+        ``R_cn`` rotates NED into the camera frame at the exposure time; ``scale`` is ground pixels per unit
+        height (``1 / focal_px`` times the height ratio base/current); ``offset_fwd_right_px`` shifts the
+        reference ground point (in stabilised pixels).
+        """
+        n = self._fwd_px.size
+        rays_h = np.empty((n, 3))
+        rays_h[:, 0] = (self._fwd_px + offset_fwd_right_px[0]) * scale
+        rays_h[:, 1] = (self._right_px + offset_fwd_right_px[1]) * scale
+        rays_h[:, 2] = 1.0
+        rays_c = rays_h @ (R_cn @ R_z(base_yaw_rad)).T
+        px, ok = self.camera.project(rays_c)
+        if not ok.all():
+            return np.empty((0, 0), np.float32), np.empty((0, 0), np.float32), False
+        gx = px[:, 0].reshape(self._grid_shape)
+        gy = px[:, 1].reshape(self._grid_shape)
+        map_x = (self._A_v @ gx @ self._A_u.T).astype(np.float32)
+        map_y = (self._A_v @ gy @ self._A_u.T).astype(np.float32)
+        return map_x, map_y, True
+
+    def sample(self, raw: NDArray, R_cn: NDArray[np.float64], base_yaw_rad: float, scale: float) -> Patch:
+        map_x, map_y, ok = self.sample_map(R_cn, base_yaw_rad, scale)
+        if not ok:
+            return Patch(np.zeros((self.height_px, self.width_px), np.float32), False)
+        patch = cv2.remap(raw, map_x, map_y, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        return Patch(to_intensity(patch), True)
+
+
+class VirtualNadirCamera:
+    """Base-image and template samplers sharing one camera and one virtual focal length."""
+
+    def __init__(self, camera: CameraModel, base_size_px: tuple[int, int], base_ref_uv: tuple[float, float],
+                 template_px: int, focal_px: float, grid_px: int) -> None:
+        self.camera = camera
+        self.focal_px = focal_px if focal_px > 0 else camera.config.fx_px
+        half = (template_px - 1) / 2.0
+        self.base = PatchSampler(camera, base_size_px[0], base_size_px[1], base_ref_uv, grid_px)
+        self.template = PatchSampler(camera, template_px, template_px, (half, half), grid_px)
+
+    def R_cn(self, R_nb: Rotation) -> NDArray[np.float64]:
+        """NED-to-camera rotation for a body attitude."""
+        return self.camera.R_bc.T @ R_nb.inv().as_matrix()
+
+    def sample_base(self, raw: NDArray, R_nb: Rotation, base_yaw_rad: float) -> Patch:
+        return self.base.sample(raw, self.R_cn(R_nb), base_yaw_rad, 1.0 / self.focal_px)
+
+    def sample_template(self, raw: NDArray, R_nb: Rotation, base_yaw_rad: float, height_ratio: float) -> Patch:
+        """Template at the current nadir; ``height_ratio = h_base / h_now`` rescales it to the base image's GSD."""
+        return self.template.sample(raw, self.R_cn(R_nb), base_yaw_rad, height_ratio / self.focal_px)
