@@ -44,7 +44,8 @@ class GsoeStep:
 
     ``dx_px`` cross track (right of ``base_yaw_rad``), ``dy_px`` along track (forward), both in the stabilised
     frame ``s`` of the cycle, whose ground sample distance at the base snapshot was ``gsd_m_px`` (with the height
-    ``height_agl_m`` used for it).  ``yaw_rad`` is the heading at the current frame.  ``t_us`` is the current frame's exposure time, ``base_t_us`` the base
+    ``height_agl_m`` used for it).  ``yaw_rad`` is the heading at the current frame.  ``t_us`` is the current
+    frame's exposure time, ``base_t_us`` the base
     snapshot's.  ``rel_rot_rad`` is the size of the rotation between the base and current camera poses (what the
     attitude-induced pixel error scales with).
     """
@@ -64,3 +65,37 @@ class GsoeStep:
     quality: MatchQuality
     valid: bool
     new_cycle: bool
+
+
+@dataclass(frozen=True, slots=True)
+class AirspeedSample:
+    """Pitot true airspeed at ``t_us``."""
+
+    t_us: int
+    tas_m_s: float
+
+
+@dataclass(frozen=True, slots=True)
+class BaroSample:
+    """Barometric height above the mission's reference point at ``t_us`` (positive up)."""
+
+    t_us: int
+    alt_m: float
+
+
+@dataclass(frozen=True, slots=True)
+class GnssSample:
+    """GNSS fix at ``t_us``: NED position relative to the reference point and NED velocity.
+
+    Without a fix (``fix_ok`` false, e.g. in an outage) the position and velocity are NaN, ``n_sats`` is 0 and the
+    accuracies are infinite.  ``h_acc_m`` / ``v_acc_m_s`` are the receiver's 1-sigma accuracy estimates of one
+    horizontal position axis and one velocity axis.
+    """
+
+    t_us: int
+    pos_ned_m: NDArray[np.float64]
+    vel_ned_m_s: NDArray[np.float64]
+    fix_ok: bool
+    n_sats: int
+    h_acc_m: float
+    v_acc_m_s: float
