@@ -1,0 +1,270 @@
+"""Camera renderer: the raw frame a calibrated belly camera sees over a flat textured ground.
+
+Forward model, frames as in :mod:`gsoe`: every raw pixel's unit ray (``camera.unproject``, computed once) is
+rotated camera -> body (``camera.R_bc``) -> NED (``R_nb``) and intersected with the ground plane ``z = 0``; the
+aircraft is at ``pos_ned_m`` with ``pos_ned_m[2] = -height``.  Rays that do not reach the ground (down component
+below :data:`MIN_DOWN_COS`) see the sky (:data:`SKY_INTENSITY_DN`).
+
+The texture is prefiltered to each pixel's ground footprint (mip-mapping with trilinear filtering): the
+footprint is ``distance * pixel_angle / cos(incidence)`` (``pixel_angle`` is the angle a raw pixel subtends,
+from the calibrated model, so the fisheye's compression towards the edge counts), the mip level is
+``log2(footprint / m_per_px)``, and the two nearest levels are sampled bilinearly with ``cv2.remap`` from the
+world's atlas and blended.  Everything is vectorised over the pixels of the requested region of interest; only
+the region is computed (the rest of the frame is 0), so rendering just what the estimator reads is cheap and
+gives the same pixels as a full-frame render.
+
+Options per frame: exposure-time motion blur (the mean of :data:`MOTION_BLUR_SUBSAMPLES` sub-renders spread
+over the exposure, position advanced by ``vel_ned_m_s * dt`` and attitude by ``rates_b_rad_s * dt``; the pose
+given is the one at mid-exposure), a gain (brightness change) and additive Gaussian sensor noise drawn from the
+caller's generator, then rounding to uint8.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
+
+from gsoe.camera import CameraModel
+from sim.textures import GroundWorld
+
+# Sub-renders averaged across the exposure for motion blur.
+MOTION_BLUR_SUBSAMPLES = 5
+# Intensity (DN, 0-255) and colour (BGR) of rays that miss the ground.
+SKY_INTENSITY_DN = 200.0
+SKY_COLOR_BGR = (235.0, 206.0, 135.0)
+# A ray reaches the ground when its down component (cos of the incidence angle on the ground) exceeds this.
+MIN_DOWN_COS = 1e-3
+# Added to every pixel's mip level (0: texel = footprint; positive blurs, negative sharpens and may alias).
+LOD_BIAS = 0.0
+# Tolerance on R_nb being a rotation matrix (max |R^T R - I|).
+ROTATION_TOL = 1e-6
+# Frame intensity range (uint8).
+_DN_MAX = 255.0
+
+Roi = tuple[int, int, int, int]
+
+
+def _vec3(value: ArrayLike | None, name: str) -> NDArray[np.float64]:
+    arr = np.zeros(3) if value is None else np.asarray(value, dtype=np.float64)
+    if arr.shape != (3,) or not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} must be 3 finite numbers, got {value!r}")
+    return arr
+
+
+def _rotation(R: ArrayLike, name: str = "R_nb") -> NDArray[np.float64]:
+    arr = np.asarray(R, dtype=np.float64)
+    if arr.shape != (3, 3) or not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} must be a finite 3x3 matrix, got shape {arr.shape}")
+    if np.max(np.abs(arr.T @ arr - np.eye(3))) > ROTATION_TOL or np.linalg.det(arr) <= 0:
+        raise ValueError(f"{name} is not a rotation matrix (orthonormal, det +1)")
+    return arr
+
+
+def _nonneg(value: float, name: str, *, positive: bool = False) -> float:
+    ok = isinstance(value, int | float | np.floating | np.integer) and not isinstance(value, bool)
+    if not ok or not math.isfinite(value) or value < 0 or (positive and value == 0):
+        raise ValueError(f"{name} must be a {'positive' if positive else 'non-negative'} finite number, got {value!r}")
+    return float(value)
+
+
+class CameraRenderer:
+    """Renders raw frames of ``camera`` over ``world``.
+
+    Parameters
+    ----------
+    camera : the calibrated camera (intrinsics, distortion, mounting ``R_bc``).
+    world : the ground texture.
+    blur_subsamples : number of sub-renders averaged for motion blur.
+    mipmap : prefilter to the pixel footprint (``False`` samples level 0 only: aliases; for tests and demos).
+    """
+
+    def __init__(self, camera: CameraModel, world: GroundWorld, *, blur_subsamples: int = MOTION_BLUR_SUBSAMPLES,
+                 mipmap: bool = True) -> None:
+        if isinstance(blur_subsamples, bool) or not isinstance(blur_subsamples, int) or blur_subsamples < 1:
+            raise ValueError(f"blur_subsamples must be a positive integer, got {blur_subsamples!r}")
+        self.camera = camera
+        self.world = world
+        self.blur_subsamples = blur_subsamples
+        self.mipmap = bool(mipmap)
+        w, h = camera.size_px
+        self.width_px, self.height_px = w, h
+        rows, cols = np.mgrid[0:h, 0:w].astype(np.float64)
+        px = np.column_stack([cols.ravel(), rows.ravel()])
+        rays = camera.unproject(px).reshape(h, w, 3)
+        # Unit rays per pixel in the camera frame, one contiguous float32 plane per axis.
+        self._ray_x, self._ray_y, self._ray_z = (np.ascontiguousarray(rays[..., i], dtype=np.float32)
+                                                 for i in range(3))
+        # Angle subtended by each pixel (the larger of its two sides), from rays through its edge midpoints.
+        half = np.array([0.5, 0.0])
+
+        def side_angle(offset: NDArray[np.float64]) -> NDArray[np.float64]:
+            a = camera.unproject(px - offset)
+            b = camera.unproject(px + offset)
+            return np.arctan2(np.linalg.norm(np.cross(a, b), axis=1), np.sum(a * b, axis=1))
+
+        pixel_angle = np.maximum(side_angle(half), side_angle(half[::-1])).reshape(h, w)
+        self._log2_pixel_angle = np.log2(pixel_angle).astype(np.float32)
+        for arr in (self._ray_x, self._ray_y, self._ray_z, self._log2_pixel_angle):
+            arr.setflags(write=False)
+
+    # ------------------------------------------------------------------------------------------------ helpers
+    def _check_roi(self, roi: Roi | None) -> Roi:
+        if roi is None:
+            return 0, 0, self.width_px, self.height_px
+        try:
+            x0, y0, x1, y1 = (int(v) for v in roi)
+            ok = all(int(v) == v for v in roi)
+        except (TypeError, ValueError):
+            raise ValueError(f"roi must be (x0, y0, x1, y1) integers, got {roi!r}") from None
+        if not ok or not (0 <= x0 < x1 <= self.width_px and 0 <= y0 < y1 <= self.height_px):
+            raise ValueError(f"roi must be integers with 0 <= x0 < x1 <= {self.width_px} and "
+                             f"0 <= y0 < y1 <= {self.height_px}, got {roi!r}")
+        return x0, y0, x1, y1
+
+    def _maps(self, pos: NDArray[np.float64], R_nb: NDArray[np.float64], roi: Roi) -> dict[str, Any]:
+        """Per-pixel sampling of one pose over ``roi``: atlas maps of the two mip levels, blend weight, hit mask."""
+        x0, y0, x1, y1 = roi
+        sl = (slice(y0, y1), slice(x0, x1))
+        height_m = -float(pos[2])
+        R_nc = R_nb @ self.camera.R_bc
+        rx, ry, rz = self._ray_x[sl], self._ray_y[sl], self._ray_z[sl]
+        d_n = float(R_nc[0, 0]) * rx + float(R_nc[0, 1]) * ry + float(R_nc[0, 2]) * rz
+        d_e = float(R_nc[1, 0]) * rx + float(R_nc[1, 1]) * ry + float(R_nc[1, 2]) * rz
+        d_d = float(R_nc[2, 0]) * rx + float(R_nc[2, 1]) * ry + float(R_nc[2, 2]) * rz
+        hit = d_d > MIN_DOWN_COS
+        np.clip(d_d, MIN_DOWN_COS, None, out=d_d)
+        world = self.world
+        # distance to the ground along the ray, in level-0 texels
+        t_px = np.float32(height_m / world.m_per_px) / d_d
+        u_c, v_c = world.reduce_texel(*(float(c) for c in world.ground_to_texel(pos[0], pos[1])))
+        d_e *= t_px
+        d_e += np.float32(u_c)
+        d_n *= t_px
+        np.subtract(np.float32(v_c), d_n, out=d_n)
+        uf, vf = world.fold_texel(d_e, d_n)
+        if not self.mipmap:
+            return {"m0": world.atlas_maps(uf, vf, 0), "m1": None, "frac": None, "far": None, "hit": hit}
+        # mip level = log2(footprint / texel) = log2((t / m) / cos(incidence)) + log2(pixel_angle)
+        t_px /= d_d
+        lod = cv2.log(t_px)
+        lod *= np.float32(1.0 / math.log(2.0))
+        lod += self._log2_pixel_angle[sl]
+        if LOD_BIAS:
+            lod += np.float32(LOD_BIAS)
+        # Beyond the coarsest level, fade to the tile's mean over one more level (no aliasing towards the horizon).
+        top = world.n_levels - 1
+        far = None
+        if float(lod.max()) > top:
+            far = np.clip(lod - np.float32(top), 0.0, 1.0)
+        np.clip(lod, 0.0, top, out=lod)
+        level_f = np.floor(lod)
+        lod -= level_f  # blend weight of the coarser level
+        level = level_f.astype(np.uint8)
+        return {"m0": world.atlas_maps(uf, vf, level), "m1": world.atlas_maps(uf, vf, level, shift=1),
+                "frac": lod, "far": far, "hit": hit}
+
+    @staticmethod
+    def _sample(atlas: NDArray[Any], mean: float | NDArray[np.float32], maps: dict[str, Any]) -> NDArray[np.float32]:
+        mx, my = maps["m0"]
+        a = np.asarray(cv2.remap(atlas, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE), dtype=np.float32)
+        if maps["m1"] is not None:
+            mx, my = maps["m1"]
+            b = np.asarray(cv2.remap(atlas, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE))
+            frac = maps["frac"] if a.ndim == 2 else maps["frac"][..., None]
+            b = b.astype(np.float32, copy=False) - a
+            b *= frac
+            a += b
+        if maps["far"] is not None:
+            far = maps["far"] if a.ndim == 2 else maps["far"][..., None]
+            a += (mean - a) * far
+        return a
+
+    def _check_pose(self, pos_ned_m: ArrayLike, R_nb: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        pos = _vec3(pos_ned_m, "pos_ned_m")
+        if pos[2] >= 0:
+            raise ValueError(f"pos_ned_m[2] must be negative (camera above the ground plane z = 0), got {pos[2]!r}")
+        return pos, _rotation(R_nb)
+
+    # ------------------------------------------------------------------------------------------------ public
+    def render_intensity(self, pos_ned_m: ArrayLike, R_nb: ArrayLike, *, roi: Roi | None = None,
+                         exposure_s: float = 0.0, vel_ned_m_s: ArrayLike | None = None,
+                         rates_b_rad_s: ArrayLike | None = None) -> NDArray[np.float32]:
+        """Ideal intensity (float32, 0-255 scale, no gain, noise or rounding) of the ROI only, shape
+        ``(y1 - y0, x1 - x0)``.  Arguments as in :meth:`render`."""
+        pos, R = self._check_pose(pos_ned_m, R_nb)
+        box = self._check_roi(roi)
+        exposure = _nonneg(exposure_s, "exposure_s")
+        vel = _vec3(vel_ned_m_s, "vel_ned_m_s")
+        rates = _vec3(rates_b_rad_s, "rates_b_rad_s")
+        if exposure == 0.0 or (not vel.any() and not rates.any()):
+            return self._render_pose(pos, R, box)
+        n = self.blur_subsamples
+        acc: NDArray[np.float32] | None = None
+        for dt in exposure * ((np.arange(n) + 0.5) / n - 0.5):
+            p = pos + vel * dt
+            if p[2] >= 0:
+                raise ValueError("the camera crosses the ground plane during the exposure")
+            img = self._render_pose(p, R @ Rotation.from_rotvec(rates * dt).as_matrix(), box)
+            if acc is None:
+                acc = img
+            else:
+                acc += img
+        assert acc is not None
+        acc *= np.float32(1.0 / n)
+        return acc
+
+    def _render_pose(self, pos: NDArray[np.float64], R_nb: NDArray[np.float64], roi: Roi) -> NDArray[np.float32]:
+        maps = self._maps(pos, R_nb, roi)
+        img = self._sample(self.world.atlas, self.world.mean_intensity, maps)
+        img[~maps["hit"]] = SKY_INTENSITY_DN
+        return img
+
+    def render(self, pos_ned_m: ArrayLike, R_nb: ArrayLike, *, roi: Roi | None = None, exposure_s: float = 0.0,
+               vel_ned_m_s: ArrayLike | None = None, rates_b_rad_s: ArrayLike | None = None,
+               noise_std: float = 0.0, gain: float = 1.0, rng: np.random.Generator | None = None,
+               ) -> NDArray[np.uint8]:
+        """The raw frame (``height_px x width_px`` uint8 intensity) seen from ``pos_ned_m`` (NED, m; ``[2]`` is
+        minus the height above the ground plane) with attitude ``R_nb`` (body to NED).
+
+        ``roi = (x0, y0, x1, y1)`` (raw pixels, end exclusive) computes only that rectangle; the rest is 0.
+        ``exposure_s`` > 0 with ``vel_ned_m_s`` (m/s, NED) and/or ``rates_b_rad_s`` (body rates, rad/s) adds
+        motion blur, the pose being the one at mid-exposure.  The intensity is multiplied by ``gain`` and
+        Gaussian noise of ``noise_std`` DN drawn from ``rng`` is added (``rng`` required when ``noise_std > 0``).
+        """
+        noise = _nonneg(noise_std, "noise_std")
+        g = _nonneg(gain, "gain", positive=True)
+        if noise > 0 and not isinstance(rng, np.random.Generator):
+            raise ValueError("noise_std > 0 needs rng, a numpy.random.Generator")
+        box = self._check_roi(roi)
+        img = self.render_intensity(pos_ned_m, R_nb, roi=box, exposure_s=exposure_s, vel_ned_m_s=vel_ned_m_s,
+                                    rates_b_rad_s=rates_b_rad_s)
+        if g != 1.0:
+            img *= np.float32(g)
+        if noise > 0:
+            assert rng is not None
+            img += np.float32(noise) * rng.standard_normal(img.shape, dtype=np.float32)
+        np.clip(img, 0.0, _DN_MAX, out=img)
+        x0, y0, x1, y1 = box
+        out = np.zeros((self.height_px, self.width_px), np.uint8)
+        np.rint(img, out=img)
+        out[y0:y1, x0:x1] = img
+        return out
+
+    def render_color(self, pos_ned_m: ArrayLike, R_nb: ArrayLike, *, roi: Roi | None = None) -> NDArray[np.uint8]:
+        """Colour picture (BGR uint8, ``height_px x width_px x 3``) of the same view, for looking at; needs a world
+        built with colour (``GroundWorld.from_name(..., color=True)``)."""
+        if self.world.color_atlas is None:
+            raise ValueError(f"world {self.world.name!r} has no colour (build it with color=True)")
+        pos, R = self._check_pose(pos_ned_m, R_nb)
+        x0, y0, x1, y1 = self._check_roi(roi)
+        maps = self._maps(pos, R, (x0, y0, x1, y1))
+        img = self._sample(self.world.color_atlas, self.world.mean_color_bgr, maps)
+        img[~maps["hit"]] = SKY_COLOR_BGR
+        out = np.zeros((self.height_px, self.width_px, 3), np.uint8)
+        out[y0:y1, x0:x1] = np.rint(np.clip(img, 0.0, _DN_MAX))
+        return out
