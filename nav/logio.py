@@ -25,22 +25,26 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 DEFAULT_FLUSH_INTERVAL_S = 0.5
 
 
 def _fmt(v: Any) -> str:
-    if isinstance(v, bool):
+    if isinstance(v, bool | np.bool_):
         return "1" if v else "0"
     if isinstance(v, int):
         return str(v)
-    if isinstance(v, float):
-        return "nan" if not math.isfinite(v) else repr(v)
+    if isinstance(v, float):  # includes numpy float64
+        return "nan" if not math.isfinite(v) else repr(float(v))
     if v is None:
         return "nan"
     try:
         f = float(v)
     except (TypeError, ValueError):
         return str(v).replace(",", ";").replace("\n", " ")
+    if isinstance(v, np.integer):
+        return str(int(v))
     return "nan" if not math.isfinite(f) else repr(f)
 
 
@@ -107,8 +111,6 @@ class RunLog:
 
 def read_log(path: str | Path) -> dict[str, Any]:
     """Read one stream into a dict of numpy arrays (column name -> array), dropping a torn last line."""
-    import numpy as np
-
     text = Path(path).read_text()
     lines = text.splitlines()
     if not lines:

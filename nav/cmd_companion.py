@@ -1,0 +1,65 @@
+"""``gsoe companion --connect URL --camera SOURCE [--config FILE] [--log-dir DIR]``: run next to an autopilot.
+
+``--connect``: a MAVSDK connection URL (``udpin://0.0.0.0:14540``, ``serial:///dev/ttyAMA0:921600``, ...).
+``--camera``: a device index, a video file, a GStreamer pipeline or RTSP URL (anything ``cv2.VideoCapture``
+opens), or ``sim://127.0.0.1:PORT`` for the simulator's frame stream (``python -m sim.mavlink_vehicle``).
+``--target-px X,Y`` designates a target to track and fly to (video-tracking guidance); a ground station can
+designate one later over ``--gcs URL`` (COMMAND_LONG MAV_CMD_USER_1, param1/param2 = pixel), signed with
+``--signing-key FILE`` (then unsigned commands are refused).
+Stops cleanly on SIGINT/SIGTERM; ``kill -9`` loses at most the last ``[companion] log_flush_s`` of the log.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import signal
+import time
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+
+def _pair(text: str) -> tuple[float, float]:
+    try:
+        a, b = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected X,Y in pixels, got {text!r}") from None
+    return a, b
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--connect", required=True, help="MAVSDK connection URL, e.g. udpin://0.0.0.0:14540")
+    parser.add_argument("--camera", required=True, help="camera index, file, GStreamer/RTSP URL or sim://HOST:PORT")
+    parser.add_argument("--config", help="configuration file (default: config/default.toml)")
+    parser.add_argument("--log-dir", help="log folder (default: logs/companion-<UTC time>)")
+    parser.add_argument("--target-px", type=_pair, help="designate a target at X,Y (raw image pixels)")
+    parser.add_argument("--gcs", help="the companion's own link for ground-station commands (pymavlink URL)")
+    parser.add_argument("--signing-key", help="MAVLink 2 signing key file for --gcs (unsigned commands refused)")
+    parser.add_argument("--duration-s", type=float, help="stop after this long (default: run until stopped)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from nav.companion import Companion
+    from nav.configfile import load_gsoe_config
+
+    gsoe_cfg, raw = load_gsoe_config(args.config)
+    log_dir = args.log_dir or str(Path("logs") / time.strftime("companion-%Y%m%dT%H%M%SZ", time.gmtime()))
+    key = None
+    if args.signing_key:
+        from nav.signing import load_key
+
+        key = load_key(args.signing_key)
+    app = Companion(args.connect, args.camera, gsoe_cfg, raw, log_dir, target_px=args.target_px, gcs_url=args.gcs,
+                    signing_key=key)
+
+    def _stop(signum: int, _frame: object) -> None:
+        log.info("signal %d: stopping", signum)
+        app.request_stop()
+
+    signal.signal(signal.SIGINT, _stop)
+    signal.signal(signal.SIGTERM, _stop)
+    status = app.run(args.duration_s)
+    print(json.dumps(status, indent=1, default=str))
+    return 0

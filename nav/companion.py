@@ -1,0 +1,668 @@
+"""The companion app's loop: camera + autopilot link -> GSOE + EKF -> GNSS monitor -> outputs, guidance and log.
+
+One synchronous loop (the link's asyncio runs in its own thread, the camera reads in its own thread):
+
+1. drain the link's validated telemetry samples: attitude and IMU go to the optical estimator's attitude buffer
+   and to the EKF's prediction, airspeed and baro to the EKF, GNSS to the :class:`GnssMonitor` and, while the
+   monitor says ``GNSS_OK``, to the EKF;
+2. take the newest camera frame (stamped at capture minus ``camera_latency_s`` on the companion's clock, or, for
+   the simulator's stream, at its exposure time mapped from the vehicle's clock); reject unusable frames (None,
+   wrong size, wrong type, corrupt) with a counted, logged reason;
+3. run the optical estimator on it (attitude interpolated to the exposure time), fuse its steps in the EKF;
+4. send the EKF's estimate to the autopilot while it is valid (:func:`nav.link.check_estimate` says why not);
+5. track the designated target and send the heading command (:mod:`nav.guidance`);
+6. log every input, estimate and output through :class:`nav.logio.RunLog` (append-only, flushed at least every
+   ``log_flush_s`` <= 1 s, so ``kill -9`` loses at most that).
+
+Nothing in the loop may end it except a stop request: bad frames, bad telemetry, a dead link (retried every
+``reconnect_s``) and estimator exceptions are counted, logged and survived.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import queue
+import socket
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from gsoe.camera import CameraModel
+from gsoe.config import ConfigError, GsoeConfig, build, in_range
+from gsoe.types import AttitudeSample, GsoeStep, ImuSample
+from nav.gnss_monitor import Consistency, GnssMonitor, GnssMonitorConfig, GnssState
+from nav.guidance import GuidanceConfig, TargetGuidance, change_heading_command_fields
+from nav.link import (
+    AirspeedReading,
+    BaroReading,
+    CompanionLink,
+    GnssReading,
+    HomeReading,
+    LinkConfig,
+    OutputEstimate,
+    now_us,
+)
+from nav.logio import RunLog
+from nav.tracker import TemplateTracker, TemplateTrackerConfig
+
+log = logging.getLogger(__name__)
+
+SIM_SCHEME = "sim://"
+FRAME_MAGIC = b"GSOF"  # the simulator's frame stream (sim.mavlink_vehicle documents the format)
+FRAME_HEADER_SIZE = 24
+MAV_CMD_USER_1 = 31010  # ground station -> companion: designate the target at pixel (param1, param2)
+QUALITY_WINDOW_STEPS = 30  # optical quality = fraction of valid matches over this many steps (about 1 s)
+
+
+@dataclass(frozen=True)
+class CompanionConfig:
+    """``[companion]`` of the configuration file (sub-tables ``link``, ``gnss``, ``guidance``, ``tracker``).
+
+    ``camera_latency_s``: exposure-to-capture delay of the camera stack, subtracted from the capture time;
+    ``frame_timeout_s``: no frame for this long = camera lost (reopened every ``reconnect_s``); ``reconnect_s``:
+    retry period of the camera and of the autopilot link; ``log_flush_s``: log flush interval (at most 1 s);
+    ``status_s``: period of the one-line status in the log; ``max_frame_age_s``: frames older than this when
+    processed are skipped (the loop fell behind); ``use_ekf``: run the EKF; ``ekf_init_wait_s``: without a GNSS
+    fix for this long the EKF starts from air data.
+    """
+
+    camera_latency_s: float = 0.0
+    frame_timeout_s: float = 1.0
+    reconnect_s: float = 2.0
+    log_flush_s: float = 0.5
+    status_s: float = 5.0
+    max_frame_age_s: float = 0.5
+    use_ekf: bool = True
+    ekf_init_wait_s: float = 10.0
+    link: LinkConfig = field(default_factory=LinkConfig)
+    gnss: GnssMonitorConfig = field(default_factory=GnssMonitorConfig)
+    guidance: GuidanceConfig = field(default_factory=GuidanceConfig)
+    tracker: TemplateTrackerConfig = field(default_factory=TemplateTrackerConfig)
+
+    def __post_init__(self) -> None:
+        in_range(self.camera_latency_s, 0.0, 5.0, "camera_latency_s")
+        in_range(self.frame_timeout_s, 0.01, 60.0, "frame_timeout_s")
+        in_range(self.reconnect_s, 0.05, 600.0, "reconnect_s")
+        in_range(self.log_flush_s, 0.01, 1.0, "log_flush_s")
+        in_range(self.status_s, 0.1, 3600.0, "status_s")
+        in_range(self.max_frame_age_s, 0.01, 60.0, "max_frame_age_s")
+        in_range(self.ekf_init_wait_s, 0.0, 3600.0, "ekf_init_wait_s")
+
+
+def companion_config_from_raw(raw: dict[str, Any]) -> CompanionConfig:
+    """Build ``[companion]`` (absent: defaults); errors name ``companion.<field>``."""
+    section = raw.get("companion", {})
+    if not isinstance(section, dict):
+        raise ConfigError("companion", "must be a table")
+    return build(CompanionConfig, section, "companion")
+
+
+# ------------------------------------------------------------------------------------------------ camera
+class SimFrameClient:
+    """Reads the simulator's TCP frame stream (``sim://HOST:PORT``); ``read()`` -> (vehicle_t_us, frame) | None."""
+
+    def __init__(self, host: str, port: int, timeout_s: float) -> None:
+        self._sock = socket.create_connection((host, port), timeout=timeout_s)
+        self._sock.settimeout(timeout_s)
+
+    def _exact(self, n: int) -> bytes | None:
+        buf = bytearray()
+        while len(buf) < n:
+            chunk = self._sock.recv(n - len(buf))
+            if not chunk:
+                return None
+            buf += chunk
+        return bytes(buf)
+
+    def read(self) -> tuple[int, NDArray[np.uint8]] | None:
+        import struct
+
+        head = self._exact(FRAME_HEADER_SIZE)
+        if head is None:
+            return None
+        magic, t_us, w, h, ch = struct.unpack("<4sqIIi", head)
+        if magic != FRAME_MAGIC or not (0 < w <= 16384 and 0 < h <= 16384 and ch in (1, 3)):
+            raise OSError("corrupt frame stream header")
+        data = self._exact(w * h * ch)
+        if data is None:
+            return None
+        img = np.frombuffer(data, np.uint8).reshape((h, w) if ch == 1 else (h, w, ch))
+        return int(t_us), img
+
+    def close(self) -> None:
+        self._sock.close()
+
+
+class CameraThread:
+    """Reads frames from ``source`` in a thread; keeps only the newest (a slow loop skips frames, never lags).
+
+    ``source``: a device index (``"0"``), a file, a GStreamer pipeline or RTSP URL (anything ``cv2.VideoCapture``
+    opens), or ``sim://HOST:PORT``.  ``latest()`` returns ``(t_us, frame, from_vehicle_clock, captured_us)``:
+    the exposure time, the image, whether ``t_us`` is on the vehicle's clock, and when the frame was read.
+    """
+
+    def __init__(self, source: str, cfg: CompanionConfig, clock: Callable[[], int] = now_us) -> None:
+        self.source = source
+        self.cfg = cfg
+        self.clock = clock
+        self._slot: queue.Queue[tuple[int, Any, bool, int]] = queue.Queue(maxsize=1)
+        self._stop = threading.Event()
+        self.frames = 0
+        self.failures = 0
+        self.opened = False
+        self._thread = threading.Thread(target=self._run, name="camera", daemon=True)
+        self._thread.start()
+
+    def _open(self) -> Any:
+        if self.source.startswith(SIM_SCHEME):
+            host, port = self.source[len(SIM_SCHEME):].rsplit(":", 1)
+            return SimFrameClient(host, int(port), self.cfg.frame_timeout_s)
+        src: int | str = int(self.source) if self.source.isdigit() else self.source
+        cap = cv2.VideoCapture(src)
+        if not cap.isOpened():
+            cap.release()
+            raise OSError(f"cv2.VideoCapture could not open {self.source!r}")
+        return cap
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                cap = self._open()
+            except OSError as e:
+                self.failures += 1
+                log.warning("camera %s: %s; retrying in %.1f s", self.source, e, self.cfg.reconnect_s)
+                self._stop.wait(self.cfg.reconnect_s)
+                continue
+            self.opened = True
+            log.info("camera %s opened", self.source)
+            try:
+                self._read_loop(cap)
+            finally:
+                self.opened = False
+                if isinstance(cap, SimFrameClient):
+                    cap.close()
+                else:
+                    cap.release()
+            if not self._stop.is_set():
+                log.warning("camera %s lost; reopening in %.1f s", self.source, self.cfg.reconnect_s)
+                self._stop.wait(self.cfg.reconnect_s)
+
+    def _read_loop(self, cap: Any) -> None:
+        latency_us = int(self.cfg.camera_latency_s * 1e6)
+        while not self._stop.is_set():
+            try:
+                if isinstance(cap, SimFrameClient):
+                    got = cap.read()
+                    if got is None:
+                        return
+                    item: tuple[int, Any, bool, int] = (got[0], got[1], True, self.clock())
+                else:
+                    ok, frame = cap.read()
+                    got_us = self.clock()
+                    if not ok:
+                        return
+                    item = (got_us - latency_us, frame, False, got_us)
+            except (OSError, cv2.error, ValueError) as e:
+                self.failures += 1
+                log.warning("camera read failed: %s", e)
+                return
+            self.frames += 1
+            try:
+                self._slot.get_nowait()
+            except queue.Empty:
+                pass
+            self._slot.put_nowait(item)
+
+    def latest(self, timeout_s: float) -> tuple[int, Any, bool, int] | None:
+        try:
+            return self._slot.get(timeout=timeout_s)
+        except queue.Empty:
+            return None
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=3.0)
+
+
+def check_frame(frame: Any, camera: CameraModel) -> tuple[NDArray[np.uint8] | None, str]:
+    """The frame as a gray uint8 image of the camera's size, or None and why not."""
+    if frame is None:
+        return None, "no frame"
+    if not isinstance(frame, np.ndarray) or frame.dtype != np.uint8:
+        return None, f"not a uint8 image ({type(frame).__name__} {getattr(frame, 'dtype', '')})"
+    w, h = camera.size_px
+    if frame.ndim == 3 and frame.shape[2] == 3:
+        if frame.shape[:2] != (h, w):
+            return None, f"size {frame.shape[1]}x{frame.shape[0]} != calibrated {w}x{h}"
+        return np.asarray(cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY), dtype=np.uint8), ""
+    if frame.ndim == 3 and frame.shape[2] == 1:
+        frame = frame[:, :, 0]
+    if frame.ndim != 2:
+        return None, f"unexpected shape {frame.shape}"
+    if frame.shape != (h, w):
+        return None, f"size {frame.shape[1]}x{frame.shape[0]} != calibrated {w}x{h}"
+    return frame, ""
+
+
+# ------------------------------------------------------------------------------------------------ estimator
+class Estimator:
+    """GSOE + the EKF (:class:`fusion.ekf.NavEkf`) behind one small interface for the loop.
+
+    The EKF is built at the first GNSS fix the monitor accepts (position and velocity from it, heights referred to
+    the autopilot's home elevation, :class:`nav.link.HomeReading`).  Without any fix for ``ekf_init_wait_s`` it
+    starts from air data instead: position at the local origin, ground velocity = TAS along the heading, height from
+    the baro; its position sigma then says how little is known.  Until then the estimate is invalid and not sent.
+    """
+
+    def __init__(self, gsoe_cfg: GsoeConfig, camera: CameraModel, raw: dict[str, Any], cfg: CompanionConfig) -> None:
+        self.cfg = cfg
+        self.gsoe: Any = None
+        try:
+            from gsoe.cycle import GsoeEstimator
+        except ImportError as e:  # a broken install must still log telemetry and announce GNSS state
+            log.error("optical estimator not available (%s): no optical steps", e)
+        else:
+            self.gsoe = GsoeEstimator(gsoe_cfg, camera)
+        self.ekf: Any = None
+        self.ekf_cfg: Any = None
+        self.why_no_ekf = "EKF disabled in [companion]"
+        if cfg.use_ekf:
+            try:
+                from fusion.config import ekf_config_from_raw
+            except ImportError as e:
+                self.why_no_ekf = f"EKF not available ({e})"
+            else:
+                self.ekf_cfg = ekf_config_from_raw(raw)
+                self.why_no_ekf = "EKF waiting for a GNSS fix"
+        self._att: AttitudeSample | None = None
+        self._tas: float = math.nan
+        self._baro_alt: float = math.nan
+        self.home_amsl_m: float = math.nan
+        self._start_us: int | None = None
+        self._recent_valid: list[bool] = []
+        self.last_estimate: Any = None
+
+    # ---------------------------------------------------------------- EKF construction
+    def _build(self, t_us: int, pos_ned: NDArray[np.float64], vel_ned: NDArray[np.float64], how: str) -> None:
+        from fusion.ekf import NavEkf
+
+        self.ekf = NavEkf(self.ekf_cfg, t_us=int(t_us), pos_ned_m=pos_ned, vel_ned_m_s=vel_ned)
+        self.why_no_ekf = ""
+        log.info("EKF started from %s at t=%d us, pos %s m, vel %s m/s", how, t_us, np.round(pos_ned, 1),
+                 np.round(vel_ned, 1))
+
+    def _height_from_baro(self) -> float:
+        return self._baro_alt - self.home_amsl_m if math.isfinite(self.home_amsl_m) else math.nan
+
+    def maybe_start_from_air_data(self, t_us: int) -> None:
+        if self.ekf is not None or self.ekf_cfg is None:
+            return
+        self._start_us = t_us if self._start_us is None else self._start_us
+        if (t_us - self._start_us) / 1e6 < self.cfg.ekf_init_wait_s or self._att is None:
+            return
+        h = self._height_from_baro()
+        if not (math.isfinite(self._tas) and math.isfinite(h)):
+            return
+        yaw = self._att.yaw_rad
+        self._build(t_us, np.array([0.0, 0.0, -h]), np.array([self._tas * math.cos(yaw), self._tas * math.sin(yaw),
+                                                              0.0]), "air data (no GNSS fix)")
+
+    # ---------------------------------------------------------------- inputs
+    def attitude(self, s: AttitudeSample) -> None:
+        if self.gsoe is not None:
+            self.gsoe.push_attitude(s)
+        self._att = s
+
+    def imu(self, s: ImuSample) -> None:
+        if self.gsoe is not None:
+            self.gsoe.push_imu(s)
+        if self.ekf is not None and self._att is not None:
+            self.ekf.predict(s, self._att)
+
+    def airspeed(self, s: AirspeedReading) -> None:
+        self._tas = s.tas_m_s
+        if self.ekf is not None:
+            self.ekf.fuse_airspeed(s.t_us, s.tas_m_s)
+
+    def baro(self, s: BaroReading) -> None:
+        self._baro_alt = s.baro_alt_m
+        h = self._height_from_baro()
+        if self.ekf is not None and math.isfinite(h):
+            self.ekf.fuse_baro(s.t_us, h)
+
+    def home(self, s: HomeReading) -> None:
+        self.home_amsl_m = s.alt_amsl_m - s.rel_alt_m
+
+    def gnss(self, s: GnssReading) -> None:
+        r = s.report
+        if r.pos_ne_m is None or not math.isfinite(self.home_amsl_m):
+            return
+        pos = np.array([r.pos_ne_m[0], r.pos_ne_m[1], -(s.alt_amsl_m - self.home_amsl_m)])
+        vel = None if r.vel_ne_m_s is None else np.asarray(r.vel_ne_m_s, dtype=float)
+        if self.ekf is None:
+            if self.ekf_cfg is not None and vel is not None:
+                self._build(r.t_us, pos, np.array([vel[0], vel[1], 0.0]), "the first GNSS fix")
+            return
+        hacc = r.hacc_m if math.isfinite(r.hacc_m) and r.hacc_m > 0 else None
+        vacc = s.vacc_m if math.isfinite(s.vacc_m) and s.vacc_m > 0 else None
+        sacc = s.vel_acc_m_s if math.isfinite(s.vel_acc_m_s) and s.vel_acc_m_s > 0 else None
+        self.ekf.fuse_gnss(r.t_us, pos, vel, pos_sigma_ne_m=hacc, pos_sigma_d_m=vacc, vel_sigma_ne_m_s=sacc)
+
+    def frame(self, t_us: int, gray: NDArray[np.uint8]) -> list[GsoeStep]:
+        if self.gsoe is None:
+            return []
+        h = self.last_estimate.height_agl_m if self.last_estimate is not None else self._height_from_baro()
+        steps = self.gsoe.process_frame(t_us, gray, float(h))
+        for st in steps:
+            if not st.new_cycle:
+                self._recent_valid.append(bool(st.valid))
+            if self.ekf is not None:
+                self.ekf.fuse_optical(st)
+        del self._recent_valid[:-QUALITY_WINDOW_STEPS]
+        return steps
+
+    # ---------------------------------------------------------------- outputs
+    def refresh(self) -> Any:
+        self.last_estimate = self.ekf.estimate() if self.ekf is not None else None
+        return self.last_estimate
+
+    def consistency(self) -> Consistency | None:
+        e = self.last_estimate
+        if e is None:
+            return None
+        return Consistency(pred_pos_ne_m=np.asarray(e.pos_ne_m, dtype=float)[:2],
+                           pred_pos_sigma_m=float(np.max(np.asarray(e.pos_ne_sigma_m, dtype=float)[:2])))
+
+    @property
+    def quality(self) -> float:
+        """Fraction of valid optical matches over the last :data:`QUALITY_WINDOW_STEPS` steps."""
+        return float(np.mean(self._recent_valid)) if self._recent_valid else 0.0
+
+    def output(self, t_us: int, gnss_state: GnssState) -> OutputEstimate:
+        e = self.last_estimate
+        if e is None:
+            nan = math.nan
+            z2 = np.full(2, nan)
+            return OutputEstimate(t_us, False, nan, nan, nan, z2, np.full((2, 2), nan), z2, np.full((2, 2), nan),
+                                  nan, self.quality, int(gnss_state), reason=self.why_no_ekf)
+        return estimate_to_output(e, int(gnss_state), self.quality)
+
+
+def estimate_to_output(e: Any, gnss_state: int, quality: float) -> OutputEstimate:
+    """Map :class:`fusion.ekf.NavEstimate` onto what the link sends."""
+    vel = np.asarray(e.vel_ned_m_s, dtype=float)
+    vs = np.asarray(e.vel_ned_sigma_m_s, dtype=float)
+    ws = np.asarray(e.wind_ne_sigma_m_s, dtype=float)
+    return OutputEstimate(
+        t_us=int(e.t_us), valid=bool(e.valid), drift_rad=float(e.drift_rad), drift_sigma_rad=float(e.drift_sigma_rad),
+        ata_rad=float(e.ata_rad), vel_ne_m_s=vel[:2].copy(), vel_cov_ne=np.diag(vs[:2] ** 2),
+        wind_ne_m_s=np.asarray(e.wind_ne_m_s, dtype=float)[:2].copy(), wind_cov_ne=np.diag(ws[:2] ** 2),
+        height_agl_m=float(e.height_agl_m), quality=quality, gnss_state=gnss_state, vel_d_m_s=float(vel[2]),
+        vel_d_var=float(vs[2] ** 2), reason=str(e.invalid_reason))
+
+
+# ------------------------------------------------------------------------------------------------ the app
+@dataclass
+class Counters:
+    frames: int = 0
+    frames_rejected: dict[str, int] = field(default_factory=dict)
+    frames_stale: int = 0
+    steps: int = 0
+    estimator_errors: int = 0
+    outputs_sent: int = 0
+    outputs_suppressed: dict[str, int] = field(default_factory=dict)
+    commands: int = 0
+
+
+class Companion:
+    """The companion app.  ``run()`` loops until :meth:`request_stop` (or ``duration_s``)."""
+
+    def __init__(self, connect_url: str, camera_source: str, gsoe_cfg: GsoeConfig, raw: dict[str, Any],
+                 log_dir: str, target_px: tuple[float, float] | None = None, gcs_url: str | None = None,
+                 signing_key: bytes | None = None) -> None:
+        self.cfg = companion_config_from_raw(raw)
+        self.camera = CameraModel.from_config(gsoe_cfg.camera)
+        self.runlog = RunLog(log_dir, flush_interval_s=self.cfg.log_flush_s)
+        self.link = CompanionLink(connect_url, self.cfg.link)
+        self.estimator = Estimator(gsoe_cfg, self.camera, raw, self.cfg)
+        self.monitor = GnssMonitor(self.cfg.gnss)
+        self.guidance = TargetGuidance(self.camera, self.cfg.guidance)
+        self.tracker = TemplateTracker(self.cfg.tracker)
+        self.target_px = target_px
+        self.camera_thread = CameraThread(camera_source, self.cfg)
+        self.counters = Counters()
+        self._stop = threading.Event()
+        self._last_att: AttitudeSample | None = None
+        self._last_suppress_log: dict[str, float] = {}
+        self._link_thread: threading.Thread | None = None
+        self.gcs: Any = None
+        if gcs_url:
+            from nav.signing import CommandEndpoint
+
+            self.gcs = CommandEndpoint(gcs_url, signing_key)
+
+    def _log(self, stream: str, record: dict[str, Any]) -> None:
+        """Write a record, numpy scalars as Python numbers (their repr is not a number in numpy 2)."""
+        self.runlog.write(stream, {k: v.item() if isinstance(v, np.generic) else v for k, v in record.items()})
+
+    def request_stop(self) -> None:
+        self._stop.set()
+
+    # ---------------------------------------------------------------- link management
+    def _ensure_link(self) -> None:
+        if self.link.stats.connected or (self._link_thread is not None and self._link_thread.is_alive()):
+            return
+
+        def connect() -> None:
+            if not self.link.start(self.cfg.reconnect_s):
+                log.info("autopilot not found on %s; retrying", self.link.url)
+
+        self._link_thread = threading.Thread(target=connect, name="link-connect", daemon=True)
+        self._link_thread.start()
+
+    # ---------------------------------------------------------------- inputs
+    def _drain_telemetry(self) -> None:
+        est = self.estimator
+        while True:
+            try:
+                s = self.link.samples.get_nowait()
+            except queue.Empty:
+                return
+            try:
+                if isinstance(s, AttitudeSample):
+                    est.attitude(s)
+                    self._last_att = s
+                    self._log("attitude", {"t_us": s.t_us, "roll_rad": s.roll_rad, "pitch_rad": s.pitch_rad,
+                                                   "yaw_rad": s.yaw_rad})
+                elif isinstance(s, ImuSample):
+                    est.imu(s)
+                    g, a = s.gyro_b_rad_s, s.accel_b_m_s2
+                    self._log("imu", {"t_us": s.t_us, "gyro_x_rad_s": g[0], "gyro_y_rad_s": g[1],
+                                              "gyro_z_rad_s": g[2], "accel_x_m_s2": a[0], "accel_y_m_s2": a[1],
+                                              "accel_z_m_s2": a[2]})
+                elif isinstance(s, AirspeedReading):
+                    est.airspeed(s)
+                    self._log("airspeed", {"t_us": s.t_us, "tas_m_s": s.tas_m_s})
+                elif isinstance(s, BaroReading):
+                    est.baro(s)
+                    self._log("baro", {"t_us": s.t_us, "alt_m": s.baro_alt_m})
+                elif isinstance(s, GnssReading):
+                    self._gnss(s)
+                elif isinstance(s, HomeReading):
+                    est.home(s)
+            except Exception as e:  # the estimators must not take the loop down
+                self.counters.estimator_errors += 1
+                log.exception("estimator failed on %s: %s", type(s).__name__, e)
+
+    def _gnss(self, s: GnssReading) -> None:
+        r = s.report
+        for ann in self.monitor.update(r, self.estimator.consistency()):
+            self._announce(ann.t_us, ann.old, ann.new, ann.reason, ann.text)
+        pos = r.pos_ne_m if r.pos_ne_m is not None else (math.nan, math.nan)
+        vel = r.vel_ne_m_s if r.vel_ne_m_s is not None else (math.nan, math.nan)
+        self._log("gnss", {"t_us": r.t_us, "fix_type": r.fix_type, "satellites": r.satellites,
+                                   "hacc_m": r.hacc_m, "pos_n_m": pos[0], "pos_e_m": pos[1],
+                                   "vel_n_m_s": vel[0], "vel_e_m_s": vel[1], "lat_deg": s.lat_deg,
+                                   "lon_deg": s.lon_deg, "alt_amsl_m": s.alt_amsl_m,
+                                   "state": int(self.monitor.state), "level": int(self.monitor.last_level)})
+        if self.monitor.state == GnssState.GNSS_OK:
+            self.estimator.gnss(s)
+
+    def _announce(self, t_us: int, old: GnssState, new: GnssState, reason: str, text: str) -> None:
+        self._log("gnss_state", {"t_us": t_us, "old": int(old), "new": int(new), "name": new.name,
+                                         "reason": reason})
+        self.link.send_statustext(text, "warning" if new > old else "info")
+
+    # ---------------------------------------------------------------- frames
+    def _frame(self, item: tuple[int, Any, bool, int]) -> None:
+        t_us, frame, vehicle_clock, capture_us = item
+        if vehicle_clock:
+            sync = self.link.guard._sync.get("attitude")
+            if sync is None or sync.offset_us is None:
+                self._reject_frame("no clock sync with the vehicle yet")
+                return
+            t_us = t_us + sync.offset_us
+        gray, why = check_frame(frame, self.camera)
+        if gray is None:
+            self._reject_frame(why)
+            return
+        if capture_us - t_us > self.cfg.max_frame_age_s * 1e6:
+            self.counters.frames_stale += 1
+            return
+        self.counters.frames += 1
+        try:
+            steps = self.estimator.frame(t_us, gray)
+        except Exception as e:
+            self.counters.estimator_errors += 1
+            log.exception("optical estimator failed: %s", e)
+            steps = []
+        for st in steps:
+            self.counters.steps += 1
+            self._log("gsoe", {"t_us": st.t_us, "base_t_us": st.base_t_us, "cycle_id": st.cycle_id,
+                                       "step": st.step, "dx_px": st.dx_px, "dy_px": st.dy_px,
+                                       "base_yaw_rad": st.base_yaw_rad, "gsd_m_px": st.gsd_m_px,
+                                       "height_agl_m": st.height_agl_m, "psr": st.quality.psr,
+                                       "valid": st.valid, "new_cycle": st.new_cycle})
+        self._outputs(t_us, capture_us, steps)
+        self._guide(t_us, frame if frame is not None else gray)
+
+    def _reject_frame(self, why: str) -> None:
+        key = why.split(" ")[0]
+        n = self.counters.frames_rejected.get(key, 0) + 1
+        self.counters.frames_rejected[key] = n
+        if n == 1 or n % 100 == 0:
+            log.warning("frame rejected: %s (%d so far)", why, n)
+        self._log("frames_rejected", {"t_us": now_us(), "reason": why})
+
+    def _outputs(self, t_us: int, capture_us: int, steps: list[GsoeStep]) -> None:
+        e = self.estimator.refresh()
+        if e is not None and steps:
+            self._log("ekf", e.as_record())
+            for st in self.estimator.ekf.status().values():
+                self._log("aid_status", st.as_record())
+        out = self.estimator.output(t_us, self.monitor.state)
+        reason = self.link.send_estimate(out)
+        sent_us = now_us()
+        if reason:
+            key = reason.split(" ")[0]
+            self.counters.outputs_suppressed[key] = self.counters.outputs_suppressed.get(key, 0) + 1
+            last = self._last_suppress_log.get(key, -math.inf)
+            if time.monotonic() - last > self.cfg.status_s:
+                log.info("not sending the estimate: %s", reason)
+                self._last_suppress_log[key] = time.monotonic()
+        else:
+            self.counters.outputs_sent += 1
+        self._log("outputs", {"t_us": t_us, "sent": not reason, "reason": reason,
+                                      "drift_rad": out.drift_rad, "ata_rad": out.ata_rad,
+                                      "vel_n_m_s": out.vel_ne_m_s[0], "vel_e_m_s": out.vel_ne_m_s[1],
+                                      "wind_n_m_s": out.wind_ne_m_s[0], "wind_e_m_s": out.wind_ne_m_s[1],
+                                      "gnss_state": int(self.monitor.state),
+                                      "latency_us": sent_us - capture_us})
+
+    # ---------------------------------------------------------------- guidance
+    def _guide(self, t_us: int, frame: Any) -> None:
+        if self.target_px is not None and not self.tracker.active:
+            if self.tracker.designate(t_us, frame, self.target_px):
+                log.info("target designated at %s", self.target_px)
+                self.target_px = None
+        if not self.tracker.active or not self.guidance.due(t_us) or self._last_att is None:
+            return
+        res = self.tracker.update(t_us, frame)
+        out = self.estimator.output(t_us, self.monitor.state)
+        a = self._last_att
+        fix, cmd = self.guidance.step(t_us, res.xy_px if res.valid else None, a.roll_rad, a.pitch_rad, a.yaw_rad,
+                                      out.height_agl_m, out.drift_rad, out.drift_sigma_rad, out.valid)
+        self._log("guidance", {"t_us": t_us, "track_valid": res.valid, "track_x_px": res.xy_px[0],
+                                       "track_y_px": res.xy_px[1], "range_m": fix.range_m,
+                                       "bearing_rad": fix.bearing_rad, "heading_cmd_rad": cmd.heading_rad,
+                                       "course_cmd_rad": cmd.course_rad, "drift_used_rad": cmd.drift_used_rad,
+                                       "valid": cmd.valid, "reason": cmd.reason or fix.reason})
+        if cmd.valid:
+            self.link.send_heading_command(change_heading_command_fields(
+                cmd, self.cfg.guidance, self.link.target_system, self.link.target_component))
+            self.counters.commands += 1
+
+    def _gcs_commands(self) -> None:
+        """Ground-station commands on the companion's own (optionally signed) link."""
+        if self.gcs is None:
+            return
+        for msg in self.gcs.poll():
+            if msg.get_type() != "COMMAND_LONG" or msg.command != MAV_CMD_USER_1:
+                continue
+            xy = (float(msg.param1), float(msg.param2))
+            ok = all(math.isfinite(v) for v in xy)
+            if ok:
+                self.tracker.drop()
+                self.guidance.reset()
+                self.target_px = xy
+                log.info("ground station designated the target at %s", xy)
+            self.gcs.conn.mav.command_ack_send(MAV_CMD_USER_1, 0 if ok else 2)
+
+    # ---------------------------------------------------------------- loop
+    def status(self) -> dict[str, Any]:
+        return {"connected": self.link.stats.connected, "gnss": self.monitor.state.name,
+                "camera_open": self.camera_thread.opened, **dataclasses.asdict(self.counters),
+                "telemetry_rejected": dict(self.link.guard.rejected), "sent": dict(self.link.stats.sent)}
+
+    def run(self, duration_s: float | None = None) -> dict[str, Any]:
+        start = time.monotonic()
+        last_status = last_flush = start
+        frame_wait_s = min(0.05, self.cfg.frame_timeout_s)
+        try:
+            while not self._stop.is_set():
+                now = time.monotonic()
+                if duration_s is not None and now - start >= duration_s:
+                    break
+                self._ensure_link()
+                self._drain_telemetry()
+                self._gcs_commands()
+                self.estimator.maybe_start_from_air_data(now_us())
+                for ann in self.monitor.tick(now_us()):
+                    self._announce(ann.t_us, ann.old, ann.new, ann.reason, ann.text)
+                item = self.camera_thread.latest(frame_wait_s)
+                if item is not None:
+                    self._frame(item)
+                if now - last_flush >= self.cfg.log_flush_s:
+                    last_flush = now
+                    self.runlog.flush()
+                if now - last_status >= self.cfg.status_s:
+                    last_status = now
+                    log.info("status: %s", self.status())
+        finally:
+            self.close()
+        return self.status()
+
+    def close(self) -> None:
+        self.camera_thread.stop()
+        self.link.stop()
+        if self.gcs is not None:
+            self.gcs.close()
+        self.runlog.close()

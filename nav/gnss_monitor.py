@@ -1,0 +1,207 @@
+"""GNSS outage, jamming and spoofing detection: the ``GNSS_OK`` / ``GNSS_DEGRADED`` / ``GNSS_DENIED`` state machine.
+
+Each GNSS report is graded on its own (the *instant* level):
+
+* ``DENIED``: no 3-D fix, fewer than ``min_sats_denied`` satellites, horizontal accuracy worse than
+  ``hacc_denied_m``, non-finite numbers, or a **position jump**: the reported position is farther from the EKF's
+  prediction than ``max(jump_min_m, jump_sigma * sigma)`` (a spoofer walking or jumping the solution);
+* ``DEGRADED``: fewer than ``min_sats_ok`` satellites, accuracy worse than ``hacc_ok_m``, or a **velocity
+  disagreement**: the GNSS ground velocity differs from the air-data velocity (true airspeed along the heading
+  plus the EKF's wind) by more than ``max(vel_min_m_s, vel_sigma * sigma)``;
+* ``OK`` otherwise.
+
+No report for ``timeout_s`` is ``DENIED`` (jamming usually just silences the receiver).
+
+Hysteresis: the state worsens once the instant level has been worse for ``worsen_after_s`` (0: at once) and
+improves only after it has been better for ``recover_after_s`` without interruption, so a flickering receiver
+does not toggle the EKF's GNSS fusion.  Every transition is logged and returned as an :class:`Announcement` whose
+``text`` fits a MAVLink STATUSTEXT (50 characters).
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from gsoe.config import in_range, require
+
+log = logging.getLogger(__name__)
+
+STATUSTEXT_MAX_CHARS = 50
+GPS_FIX_TYPE_3D = 3  # MAVLink GPS_FIX_TYPE_3D_FIX; higher values (DGPS, RTK) are better 3-D fixes
+
+
+class GnssState(enum.IntEnum):
+    """Ordered from best to worst (the integer is also what the companion logs and sends as a named value)."""
+
+    GNSS_OK = 0
+    GNSS_DEGRADED = 1
+    GNSS_DENIED = 2
+
+
+@dataclass(frozen=True)
+class GnssMonitorConfig:
+    """``[companion.gnss]`` thresholds (units in the names)."""
+
+    min_sats_ok: int = 6
+    min_sats_denied: int = 4
+    hacc_ok_m: float = 5.0
+    hacc_denied_m: float = 20.0
+    jump_min_m: float = 50.0
+    jump_sigma: float = 5.0
+    vel_min_m_s: float = 5.0
+    vel_sigma: float = 4.0
+    timeout_s: float = 1.5
+    worsen_after_s: float = 0.0
+    recover_after_s: float = 5.0
+
+    def __post_init__(self) -> None:
+        in_range(self.min_sats_ok, 0, 100, "min_sats_ok")
+        in_range(self.min_sats_denied, 0, 100, "min_sats_denied")
+        require(self.min_sats_denied <= self.min_sats_ok, "min_sats_denied", "must be <= min_sats_ok")
+        in_range(self.hacc_ok_m, 0.0, 1e4, "hacc_ok_m", lo_open=True)
+        in_range(self.hacc_denied_m, 0.0, 1e5, "hacc_denied_m", lo_open=True)
+        require(self.hacc_denied_m >= self.hacc_ok_m, "hacc_denied_m", "must be >= hacc_ok_m")
+        in_range(self.jump_min_m, 0.0, 1e5, "jump_min_m")
+        in_range(self.jump_sigma, 0.0, 1e3, "jump_sigma")
+        in_range(self.vel_min_m_s, 0.0, 1e3, "vel_min_m_s")
+        in_range(self.vel_sigma, 0.0, 1e3, "vel_sigma")
+        in_range(self.timeout_s, 0.01, 600.0, "timeout_s")
+        in_range(self.worsen_after_s, 0.0, 600.0, "worsen_after_s")
+        in_range(self.recover_after_s, 0.0, 3600.0, "recover_after_s")
+
+
+@dataclass(frozen=True, slots=True)
+class GnssReport:
+    """One GNSS receiver report.  ``pos_ne_m``: local north/east (m) of the fix, ``vel_ne_m_s`` its ground
+    velocity; either may be ``None`` when not reported.  ``hacc_m`` NaN when the receiver gives no accuracy."""
+
+    t_us: int
+    fix_type: int
+    satellites: int
+    hacc_m: float
+    pos_ne_m: NDArray[np.float64] | None = None
+    vel_ne_m_s: NDArray[np.float64] | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class Consistency:
+    """What the EKF and air data expect at the report's time (any part may be ``None``: that check is skipped).
+
+    ``pred_pos_ne_m`` with one-sigma ``pred_pos_sigma_m``; ``air_vel_ne_m_s`` (TAS along the heading + wind) with
+    one-sigma ``air_vel_sigma_m_s``."""
+
+    pred_pos_ne_m: NDArray[np.float64] | None = None
+    pred_pos_sigma_m: float = 0.0
+    air_vel_ne_m_s: NDArray[np.float64] | None = None
+    air_vel_sigma_m_s: float = 0.0
+
+
+@dataclass(frozen=True, slots=True)
+class Announcement:
+    """A state transition: ``text`` is the STATUSTEXT to send, ``reason`` the full explanation for the log."""
+
+    t_us: int
+    old: GnssState
+    new: GnssState
+    reason: str
+    text: str
+
+
+def _finite(a: NDArray[np.float64] | None, n: int = 2) -> bool:
+    return a is not None and np.shape(a) == (n,) and bool(np.all(np.isfinite(a)))
+
+
+class GnssMonitor:
+    """The state machine.  Feed every report with :meth:`update` and call :meth:`tick` regularly (timeouts)."""
+
+    def __init__(self, config: GnssMonitorConfig, initial: GnssState = GnssState.GNSS_DENIED) -> None:
+        self.config = config
+        self.state = initial
+        self.reason = "no GNSS report yet"
+        self.last_level = initial
+        self.last_reason = self.reason
+        self._last_report_t_us: int | None = None
+        self._cand: GnssState | None = None
+        self._cand_since_us = 0
+        self.counts = {s.name: 0 for s in GnssState}
+
+    def grade(self, report: GnssReport, expect: Consistency | None = None) -> tuple[GnssState, str]:
+        """The instant level of one report and why (no state change)."""
+        c = self.config
+        if report.fix_type < GPS_FIX_TYPE_3D:
+            return GnssState.GNSS_DENIED, f"no 3D fix (fix type {report.fix_type})"
+        if report.satellites < c.min_sats_denied:
+            return GnssState.GNSS_DENIED, f"{report.satellites} satellites < {c.min_sats_denied}"
+        if math.isfinite(report.hacc_m) and report.hacc_m > c.hacc_denied_m:
+            return GnssState.GNSS_DENIED, f"accuracy {report.hacc_m:.1f} m > {c.hacc_denied_m} m"
+        if report.pos_ne_m is not None and not _finite(report.pos_ne_m):
+            return GnssState.GNSS_DENIED, "non-finite position"
+        if report.vel_ne_m_s is not None and not _finite(report.vel_ne_m_s):
+            return GnssState.GNSS_DENIED, "non-finite velocity"
+        if (expect is not None and report.pos_ne_m is not None and _finite(expect.pred_pos_ne_m)
+                and math.isfinite(expect.pred_pos_sigma_m)):
+            jump = float(np.hypot(*(report.pos_ne_m - expect.pred_pos_ne_m)))  # type: ignore[operator]
+            gate = max(c.jump_min_m, c.jump_sigma * expect.pred_pos_sigma_m)
+            if jump > gate:
+                return GnssState.GNSS_DENIED, f"position jump {jump:.0f} m > {gate:.0f} m (spoofing?)"
+        level, why = GnssState.GNSS_OK, "3D fix"
+        if report.satellites < c.min_sats_ok:
+            level, why = GnssState.GNSS_DEGRADED, f"{report.satellites} satellites < {c.min_sats_ok}"
+        elif math.isfinite(report.hacc_m) and report.hacc_m > c.hacc_ok_m:
+            level, why = GnssState.GNSS_DEGRADED, f"accuracy {report.hacc_m:.1f} m > {c.hacc_ok_m} m"
+        if (expect is not None and report.vel_ne_m_s is not None and _finite(expect.air_vel_ne_m_s)
+                and math.isfinite(expect.air_vel_sigma_m_s)):
+            dv = float(np.hypot(*(report.vel_ne_m_s - expect.air_vel_ne_m_s)))  # type: ignore[operator]
+            gate = max(c.vel_min_m_s, c.vel_sigma * expect.air_vel_sigma_m_s)
+            if dv > gate:
+                level, why = GnssState.GNSS_DEGRADED, f"velocity disagrees with air data by {dv:.1f} m/s"
+        return level, why
+
+    def update(self, report: GnssReport, expect: Consistency | None = None) -> list[Announcement]:
+        """Grade a report and advance the state machine; returns the transitions (0 or 1)."""
+        if self._last_report_t_us is not None and report.t_us < self._last_report_t_us:
+            log.warning("GNSS report time went backwards (%d < %d us): ignored", report.t_us, self._last_report_t_us)
+            return []
+        self._last_report_t_us = report.t_us
+        level, why = self.grade(report, expect)
+        self.last_level, self.last_reason = level, why
+        self.counts[level.name] += 1
+        return self._advance(report.t_us, level, why)
+
+    def tick(self, t_us: int) -> list[Announcement]:
+        """Check the report timeout at ``t_us`` (call at the companion's loop rate)."""
+        timeout_us = self.config.timeout_s * 1e6
+        if self._last_report_t_us is None:
+            if self.state != GnssState.GNSS_DENIED:
+                return self._advance(t_us, GnssState.GNSS_DENIED, "no GNSS report")
+            return []
+        if t_us - self._last_report_t_us > timeout_us:
+            silent = (t_us - self._last_report_t_us) / 1e6
+            return self._advance(t_us, GnssState.GNSS_DENIED, f"no GNSS report for {silent:.1f} s")
+        return []
+
+    def _advance(self, t_us: int, level: GnssState, why: str) -> list[Announcement]:
+        if level == self.state:
+            self._cand = None
+            return []
+        better = level < self.state
+        if self._cand is None or (self._cand < self.state) != better:
+            self._cand, self._cand_since_us = level, t_us  # direction changed: restart the clock
+        else:
+            # while improving, go only as far as the worst level seen in the window; while worsening, at least
+            # to the mildest worse level seen (both keep the window's start)
+            self._cand = max(self._cand, level) if better else min(self._cand, level)
+        wait_s = self.config.recover_after_s if better else self.config.worsen_after_s
+        if (t_us - self._cand_since_us) / 1e6 < wait_s:
+            return []
+        old, new = self.state, self._cand
+        self.state, self.reason, self._cand = new, why, None
+        text = f"GSOE {new.name}: {why}"[:STATUSTEXT_MAX_CHARS]
+        log.warning("GNSS state %s -> %s: %s", old.name, new.name, why)
+        return [Announcement(t_us, old, new, why, text)]
