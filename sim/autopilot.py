@@ -1,0 +1,365 @@
+"""The simulated aircraft's autopilot: attitude loops, energy split, L1 waypoint guidance and heading hold.
+
+It flies the simulator's truth (this autopilot is part of the plant of the software-in-the-loop simulation, not
+the navigation module under test), so it reads a :class:`sim.truth.TruthState` and returns a
+:class:`sim.dynamics.ControlCommand`.
+
+Structure
+---------
+inner loops
+    roll: ``p_cmd = k (phi_cmd - phi) - psi_dot sin(theta)`` (limited; the second term is the body roll rate of a
+    steady coordinated turn), aileron = PI on the roll-rate error plus a feed-forward;
+    pitch: ``q_cmd = k (theta_cmd - theta) + q_turn`` (the coordinated-turn pitch rate ``psi_dot sin(phi)``),
+    elevator = PI on the pitch-rate error plus a feed-forward; yaw: rudder = PI on sideslip plus a yaw damper
+    about the coordinated-turn yaw rate.  Surface gains scale with ``(airspeed_ref / airspeed)^2`` (dynamic
+    pressure).  Integrators start at the trim commands and stop integrating while their output saturates
+    (anti-windup).
+energy split
+    pitch flies the climb rate (``climb_cmd = k (h_cmd - h)`` within the climb/sink limits, PI on the climb-rate
+    error, plus the flight-path feed-forward ``asin(climb_cmd / V)`` and the turn's extra angle of attack);
+    throttle flies the airspeed (PI, plus a feed-forward on the commanded climb rate, the power a climb needs).
+    Roll is limited to +-``roll_limit_rad`` (45 deg) and pitch to +-``pitch_limit_rad`` (20 deg).
+lateral guidance
+    L1 (S. Park, J. Deyst, J. P. How, "A new nonlinear guidance logic for trajectory tracking", AIAA GNC 2004):
+    lateral acceleration ``a = 2 V^2 sin(eta) / L1`` toward the point of the leg ``L1 = damping period V / pi``
+    ahead, on the ground velocity (so it flies ground tracks in wind); roll = ``atan(a / g)``.  A waypoint is
+    reached within ``waypoint_radius_m``, within the turn-anticipation distance ``R tan(turn / 2)`` (R the turn
+    radius at the roll limit) or when the aircraft passes the line through the waypoint normal to the leg.
+    Missions loop.  Heading hold (``set_heading_command``) commands roll from the heading error; roll hold
+    (``set_roll_command``) holds a bank angle, both with height and airspeed hold.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Final, Literal
+
+import numpy as np
+
+from gsoe.angles import wrap_pi
+from gsoe.config import in_range, require
+from sim.dynamics import STANDARD_G_M_S2, ControlCommand
+from sim.truth import TruthState
+
+G_M_S2: Final = STANDARD_G_M_S2
+
+Mode = Literal["idle", "mission", "heading", "roll"]
+
+
+@dataclass(frozen=True)
+class Waypoint:
+    """A mission waypoint: NED position of the point (height above the ground) and the airspeed to fly to it."""
+
+    north_m: float
+    east_m: float
+    height_m: float
+    airspeed_m_s: float
+
+    def __post_init__(self) -> None:
+        in_range(self.north_m, -1e6, 1e6, "north_m")
+        in_range(self.east_m, -1e6, 1e6, "east_m")
+        in_range(self.height_m, 1.0, 10000.0, "height_m")
+        in_range(self.airspeed_m_s, 5.0, 60.0, "airspeed_m_s")
+
+
+@dataclass(frozen=True)
+class AutopilotGains:
+    """Gains and limits (SI units, radians; surface gains in normalised command per rad or rad/s)."""
+
+    roll_limit_rad: float = math.radians(45.0)
+    pitch_limit_rad: float = math.radians(20.0)
+    roll_rate_limit_rad_s: float = math.radians(90.0)
+    pitch_rate_limit_rad_s: float = math.radians(60.0)
+    # roll: attitude -> rate -> aileron
+    roll_kp: float = 3.5
+    roll_rate_kp: float = 0.15
+    roll_rate_ki: float = 0.15
+    roll_rate_ff: float = 0.42
+    # pitch: attitude -> rate -> elevator
+    pitch_kp: float = 3.0
+    pitch_rate_kp: float = 0.25
+    pitch_rate_ki: float = 0.5
+    pitch_rate_ff: float = 0.1
+    # yaw: sideslip PI and yaw damper
+    beta_kp: float = 1.5
+    beta_ki: float = 1.0
+    yaw_damper_kp: float = 0.15
+    # surface gains are for this airspeed and scale with its square over the actual one's
+    airspeed_ref_m_s: float = 20.0
+    gain_scale_min: float = 0.3
+    gain_scale_max: float = 3.0
+    # height -> climb rate -> pitch
+    height_kp: float = 0.3
+    climb_rate_max_m_s: float = 3.0
+    sink_rate_max_m_s: float = 2.5
+    climb_kp: float = 0.06
+    climb_ki: float = 0.03
+    pitch_turn_ff_rad: float = 0.06
+    # airspeed -> throttle
+    airspeed_kp: float = 0.12
+    airspeed_ki: float = 0.05
+    throttle_climb_ff: float = 0.08
+    throttle_min: float = 0.0
+    throttle_max: float = 1.0
+    # lateral guidance
+    l1_period_s: float = 11.0
+    l1_damping: float = 0.75
+    heading_kp: float = 1.0
+    waypoint_radius_m: float = 15.0
+    integrator_limit: float = 0.5
+
+    def __post_init__(self) -> None:
+        in_range(self.roll_limit_rad, math.radians(5.0), math.radians(75.0), "roll_limit_rad")
+        in_range(self.pitch_limit_rad, math.radians(2.0), math.radians(45.0), "pitch_limit_rad")
+        in_range(self.roll_rate_limit_rad_s, 0.05, 10.0, "roll_rate_limit_rad_s")
+        in_range(self.pitch_rate_limit_rad_s, 0.05, 10.0, "pitch_rate_limit_rad_s")
+        for name in ("roll_kp", "roll_rate_kp", "roll_rate_ki", "roll_rate_ff", "pitch_kp", "pitch_rate_kp",
+                     "pitch_rate_ki", "pitch_rate_ff", "beta_kp", "beta_ki", "yaw_damper_kp", "height_kp",
+                     "climb_kp", "climb_ki", "pitch_turn_ff_rad", "airspeed_kp", "airspeed_ki", "throttle_climb_ff",
+                     "heading_kp"):
+            in_range(getattr(self, name), 0.0, 100.0, name)
+        in_range(self.airspeed_ref_m_s, 5.0, 60.0, "airspeed_ref_m_s")
+        in_range(self.gain_scale_min, 0.01, 1.0, "gain_scale_min")
+        in_range(self.gain_scale_max, 1.0, 100.0, "gain_scale_max")
+        in_range(self.climb_rate_max_m_s, 0.1, 20.0, "climb_rate_max_m_s")
+        in_range(self.sink_rate_max_m_s, 0.1, 20.0, "sink_rate_max_m_s")
+        in_range(self.throttle_min, 0.0, 1.0, "throttle_min")
+        in_range(self.throttle_max, 0.0, 1.0, "throttle_max")
+        require(self.throttle_min < self.throttle_max, "throttle_max", "must be above throttle_min")
+        in_range(self.l1_period_s, 1.0, 100.0, "l1_period_s")
+        in_range(self.l1_damping, 0.1, 2.0, "l1_damping")
+        in_range(self.waypoint_radius_m, 0.0, 10000.0, "waypoint_radius_m")
+        in_range(self.integrator_limit, 0.0, 1.0, "integrator_limit")
+
+
+def _clip(x: float, lo: float, hi: float) -> float:
+    return lo if x < lo else hi if x > hi else x
+
+
+class _PI:
+    """PI with a clamped integrator that stops integrating while the output saturates (anti-windup)."""
+
+    __slots__ = ("kp", "ki", "i", "i_min", "i_max")
+
+    def __init__(self, kp: float, ki: float, i0: float, i_min: float, i_max: float) -> None:
+        self.kp, self.ki, self.i, self.i_min, self.i_max = kp, ki, i0, i_min, i_max
+
+    def update(self, err: float, dt: float, extra: float, scale: float, lo: float, hi: float) -> float:
+        """``extra + scale * (kp err) + i``, clipped to [lo, hi]; ``i`` integrates ``scale * ki * err``."""
+        out = extra + scale * self.kp * err + self.i
+        if lo < out < hi or (out >= hi and err < 0.0) or (out <= lo and err > 0.0):
+            self.i = _clip(self.i + scale * self.ki * err * dt, self.i_min, self.i_max)
+            out = extra + scale * self.kp * err + self.i
+        return _clip(out, lo, hi)
+
+
+class Autopilot:
+    """Autopilot of the simulated aircraft; call :meth:`update` every dynamics step.
+
+    ``trim`` is the trim command of :meth:`sim.dynamics.FlightDynamics.trim`; the integrators start there so the
+    hand-over is smooth.  Until a mode is set the autopilot holds wings level at the height and airspeed of the
+    first truth it sees.
+    """
+
+    def __init__(self, gains: AutopilotGains | None = None, trim: ControlCommand | None = None) -> None:
+        g = gains if gains is not None else AutopilotGains()
+        if not isinstance(g, AutopilotGains):
+            raise TypeError(f"gains must be AutopilotGains, got {type(g).__name__}")
+        t = trim if trim is not None else ControlCommand(0.0, 0.0, 0.0, 0.5)
+        self.gains = g
+        lim = g.integrator_limit
+        self._roll_pi = _PI(g.roll_rate_kp, g.roll_rate_ki, t.aileron_norm, -lim, lim)
+        self._pitch_pi = _PI(g.pitch_rate_kp, g.pitch_rate_ki, t.elevator_norm, -lim, lim)
+        self._yaw_pi = _PI(g.beta_kp, g.beta_ki, t.rudder_norm, -lim, lim)
+        self._speed_pi = _PI(g.airspeed_kp, g.airspeed_ki, t.throttle_norm, g.throttle_min, g.throttle_max)
+        self._climb_pi: _PI | None = None  # its integrator starts at the first truth's pitch
+        self._mode: Mode = "idle"
+        self._waypoints: list[Waypoint] = []
+        self._loop = True
+        self._index = 0
+        self._leg_start: tuple[float, float] | None = None
+        self._heading_cmd = 0.0
+        self._roll_hold = 0.0
+        self._height_cmd: float | None = None
+        self._airspeed_cmd: float | None = None
+        self.waypoints_reached = 0
+        self.roll_cmd_rad = 0.0
+        self.pitch_cmd_rad = 0.0
+        self.climb_cmd_m_s = 0.0
+
+    # ------------------------------------------------------------------------------------------------------------
+    @property
+    def mode(self) -> Mode:
+        return self._mode
+
+    @property
+    def waypoint_index(self) -> int:
+        """Index of the waypoint being flown to (mission mode)."""
+        return self._index
+
+    @property
+    def height_cmd_m(self) -> float | None:
+        return self._height_cmd
+
+    @property
+    def airspeed_cmd_m_s(self) -> float | None:
+        return self._airspeed_cmd
+
+    def set_mission(self, waypoints: Sequence[Waypoint], loop: bool = True) -> None:
+        """Fly ``waypoints`` in order (looping back to the first when ``loop``; otherwise it flies on along the last
+        leg after the last waypoint); the first leg starts where the aircraft is at the next :meth:`update`."""
+        wps = list(waypoints)
+        if len(wps) < 2:
+            raise ValueError(f"a mission needs at least 2 waypoints, got {len(wps)}")
+        for i, w in enumerate(wps):
+            if not isinstance(w, Waypoint):
+                raise TypeError(f"waypoints[{i}] must be a Waypoint, got {type(w).__name__}")
+        self._waypoints = wps
+        self._loop = loop
+        self._index = 0
+        self._leg_start = None
+        self._mode = "mission"
+        self.waypoints_reached = 0
+
+    def set_heading_command(self, yaw_rad: float, height_m: float | None = None,
+                            airspeed_m_s: float | None = None) -> None:
+        """Hold heading ``yaw_rad``; height and airspeed are held at the given values (None: keep the current
+        commands)."""
+        if not math.isfinite(yaw_rad):
+            raise ValueError(f"yaw_rad must be finite, got {yaw_rad!r}")
+        self._set_targets(height_m, airspeed_m_s)
+        self._heading_cmd = float(wrap_pi(yaw_rad))
+        self._mode = "heading"
+
+    def set_roll_command(self, roll_rad: float, height_m: float | None = None,
+                         airspeed_m_s: float | None = None) -> None:
+        """Hold bank angle ``roll_rad`` (limited to the roll limit) with height and airspeed hold."""
+        if not math.isfinite(roll_rad):
+            raise ValueError(f"roll_rad must be finite, got {roll_rad!r}")
+        self._set_targets(height_m, airspeed_m_s)
+        self._roll_hold = _clip(roll_rad, -self.gains.roll_limit_rad, self.gains.roll_limit_rad)
+        self._mode = "roll"
+
+    def _set_targets(self, height_m: float | None, airspeed_m_s: float | None) -> None:
+        if height_m is not None:
+            in_range(height_m, 1.0, 10000.0, "height_m")
+            self._height_cmd = float(height_m)
+        if airspeed_m_s is not None:
+            in_range(airspeed_m_s, 5.0, 60.0, "airspeed_m_s")
+            self._airspeed_cmd = float(airspeed_m_s)
+
+    # ------------------------------------------------------------------------------------------------------------
+    def _l1_roll(self, truth: TruthState) -> float:
+        g = self.gains
+        pos = truth.pos_ned_m
+        pn, pe = float(pos[0]), float(pos[1])
+        if self._leg_start is None:
+            self._leg_start = (pn, pe)
+        wp = self._waypoints[self._index]
+        vn, ve = float(truth.vel_ned_m_s[0]), float(truth.vel_ned_m_s[1])
+        gs = max(math.hypot(vn, ve), 1.0)
+        # waypoint switching: acceptance radius, turn anticipation, or passing the normal through the waypoint
+        while True:
+            an, ae = self._leg_start
+            bn, be = wp.north_m, wp.east_m
+            leg = math.hypot(bn - an, be - ae)
+            tn, te = ((bn - an) / leg, (be - ae) / leg) if leg > 1e-6 else (vn / gs, ve / gs)
+            dist = math.hypot(bn - pn, be - pe)
+            nxt = self._next_index()
+            anticipation = 0.0
+            if nxt is not None:
+                w2 = self._waypoints[nxt]
+                dn, de = w2.north_m - bn, w2.east_m - be
+                turn = abs(math.atan2(tn * de - te * dn, tn * dn + te * de))  # angle between the legs
+                radius = gs * gs / (G_M_S2 * math.tan(g.roll_limit_rad))
+                anticipation = radius * math.tan(min(turn, math.radians(150.0)) / 2.0)
+            passed = (pn - bn) * tn + (pe - be) * te > 0.0
+            if nxt is not None and (dist < max(g.waypoint_radius_m, anticipation) or passed):
+                self.waypoints_reached += 1
+                self._leg_start = (bn, be)
+                self._index = nxt
+                wp = self._waypoints[nxt]
+                continue
+            break
+        self._height_cmd = wp.height_m
+        self._airspeed_cmd = wp.airspeed_m_s
+        # L1 reference point on the leg
+        l1 = max(g.l1_damping * g.l1_period_s * gs / math.pi, 1.0)
+        rn, re = pn - an, pe - ae
+        along = rn * tn + re * te
+        cross = tn * re - te * rn  # positive right of the leg
+        if abs(cross) < l1:
+            ahead = along + math.sqrt(l1 * l1 - cross * cross)
+        else:
+            ahead = along
+        refn, refe = an + tn * ahead - pn, ae + te * ahead - pe
+        eta = math.atan2(vn * refe - ve * refn, vn * refn + ve * refe)  # from the ground velocity to the L1 vector
+        eta = _clip(eta, -math.pi / 2.0, math.pi / 2.0)
+        dist_ref = max(math.hypot(refn, refe), 1.0)
+        accel = 2.0 * gs * gs * math.sin(eta) / dist_ref
+        return math.atan(accel / G_M_S2)
+
+    def _next_index(self) -> int | None:
+        n = self._index + 1
+        if n < len(self._waypoints):
+            return n
+        return 0 if self._loop else None
+
+    def update(self, truth: TruthState, dt_s: float) -> ControlCommand:
+        """Commands for the next ``dt_s`` from the truth now."""
+        if not (math.isfinite(dt_s) and dt_s > 0.0):
+            raise ValueError(f"dt_s must be finite and > 0, got {dt_s!r}")
+        g = self.gains
+        phi, theta, psi = truth.roll_rad, truth.pitch_rad, truth.yaw_rad
+        p, q, r = (float(x) for x in truth.rates_b_rad_s)
+        tas = max(truth.tas_m_s, 1.0)
+        height = truth.height_agl_m
+        if self._height_cmd is None:
+            self._height_cmd = height
+        if self._airspeed_cmd is None:
+            self._airspeed_cmd = tas
+        if self._climb_pi is None:
+            self._climb_pi = _PI(g.climb_kp, g.climb_ki, theta, -g.pitch_limit_rad, g.pitch_limit_rad)
+
+        # lateral: roll command
+        if self._mode == "mission":
+            roll_cmd = self._l1_roll(truth)
+        elif self._mode == "heading":
+            turn_rate = g.heading_kp * float(wrap_pi(self._heading_cmd - psi))
+            roll_cmd = math.atan(tas * turn_rate / G_M_S2)
+        elif self._mode == "roll":
+            roll_cmd = self._roll_hold
+        else:
+            roll_cmd = 0.0
+        roll_cmd = _clip(roll_cmd, -g.roll_limit_rad, g.roll_limit_rad)
+
+        # longitudinal: climb rate -> pitch, airspeed -> throttle
+        climb_cmd = _clip(g.height_kp * (self._height_cmd - height), -g.sink_rate_max_m_s, g.climb_rate_max_m_s)
+        climb = -float(truth.vel_ned_m_s[2])
+        cphi = max(math.cos(phi), math.cos(g.roll_limit_rad))
+        ff = math.asin(_clip(climb_cmd / tas, -1.0, 1.0)) + g.pitch_turn_ff_rad * (1.0 / cphi - 1.0)
+        pitch_cmd = self._climb_pi.update(climb_cmd - climb, dt_s, ff, 1.0, -g.pitch_limit_rad, g.pitch_limit_rad)
+        throttle = self._speed_pi.update(self._airspeed_cmd - tas, dt_s, g.throttle_climb_ff * climb_cmd, 1.0,
+                                         g.throttle_min, g.throttle_max)
+
+        # attitude -> rates -> surfaces
+        scale = _clip((g.airspeed_ref_m_s / tas) ** 2, g.gain_scale_min, g.gain_scale_max)
+        psi_dot = G_M_S2 * math.tan(phi) / tas  # coordinated-turn yaw rate
+        p_cmd = _clip(g.roll_kp * (roll_cmd - phi) - psi_dot * math.sin(theta), -g.roll_rate_limit_rad_s,
+                      g.roll_rate_limit_rad_s)
+        q_cmd = _clip(g.pitch_kp * (pitch_cmd - theta) + psi_dot * math.sin(phi) * math.cos(theta),
+                      -g.pitch_rate_limit_rad_s, g.pitch_rate_limit_rad_s)
+        r_turn = psi_dot * math.cos(phi) * math.cos(theta)
+        aileron = self._roll_pi.update(p_cmd - p, dt_s, scale * g.roll_rate_ff * p_cmd, scale, -1.0, 1.0)
+        elevator = self._pitch_pi.update(q_cmd - q, dt_s, scale * g.pitch_rate_ff * q_cmd, scale, -1.0, 1.0)
+        rudder = self._yaw_pi.update(truth.beta_rad, dt_s, -scale * g.yaw_damper_kp * (r - r_turn), scale,
+                                     -1.0, 1.0)
+        self.roll_cmd_rad, self.pitch_cmd_rad, self.climb_cmd_m_s = roll_cmd, pitch_cmd, climb_cmd
+        return ControlCommand(aileron_norm=aileron, elevator_norm=elevator, rudder_norm=rudder,
+                              throttle_norm=throttle)
+
+    def waypoints_array(self) -> np.ndarray:
+        """The mission as an (N, 4) array of north_m, east_m, height_m, airspeed_m_s (for logs and plots)."""
+        return np.array([[w.north_m, w.east_m, w.height_m, w.airspeed_m_s] for w in self._waypoints]).reshape(-1, 4)

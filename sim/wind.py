@@ -1,0 +1,311 @@
+"""Wind field of the simulator (the truth; what the estimators assume lives in ``config/``).
+
+The wind is the velocity of the air in NED (the direction it blows *to*); its parameters name the direction it
+blows *from* (clockwise from north), as the paper and MAVLink do.  Four parts, each switched and scaled by
+:class:`WindParams`:
+
+steady
+    ``speed_m_s`` from ``from_rad`` measured at ``ref_height_m`` (the paper: 6 m).
+shear
+    MIL-F-8785C logarithmic profile ``W(h) = W(h_ref) ln(h / z0) / ln(h_ref / z0)`` with surface roughness
+    ``z0 = roughness_m`` (the standard uses 0.15 ft for terminal flight phases and 2 ft otherwise); zero at and
+    below ``z0``.  Off: the steady wind is the same at every height.
+turbulence
+    Dryden (MIL-F-8785C, low altitude) with our own filters driven by the ``np.random.Generator`` the field is
+    given, so that a run is reproducible from its seed and every random draw comes from the run's generator.
+    (JSBSim 1.3's own Milspec/Tustin turbulence draws from its internal generator, seedable through the
+    ``simulation/randomseed`` and ``atmosphere/randomseed`` properties; we keep it off, ``atmosphere/turb-type``
+    0, so that the turbulence part of the truth wind is known exactly.)  Intensities ``sigma_w = 0.1 W20``,
+    ``sigma_u = sigma_v = sigma_w / (0.177 + 0.000823 h)^0.4`` and scales ``L_w = h``,
+    ``L_u = L_v = h / (0.177 + 0.000823 h)^1.2`` (h in ft, clamped to the low-altitude model's 10-1000 ft), with
+    ``W20 = turbulence_w20_m_s`` (15 kt light, 30 kt moderate, 45 kt severe) times ``turbulence_scale``.  The
+    longitudinal component lies along the mean wind's direction (the direction it blows to), the lateral one
+    90 deg clockwise of it, the vertical one down.
+    Transfer functions (Taylor's frozen turbulence at airspeed V):
+    ``H_u = sigma_u sqrt(2 L_u / (pi V)) / (1 + L_u s / V)``,
+    ``H_v = sigma_v sqrt(L_v / (pi V)) (1 + sqrt(3) L_v s / V) / (1 + L_v s / V)^2`` (and ``H_w`` alike),
+    discretised *exactly* for the white-noise input (the state covariance over one step is integrated in closed
+    form), so the output variance is ``sigma^2`` at any step size and the states start from their stationary
+    distribution (no warm-up).
+gusts
+    1-cosine discrete gusts ``v(t) = A / 2 (1 - cos(2 pi t / T))`` over ``T = 2 gust_length_m / V`` (the gust
+    reaches its peak ``A = gust_amplitude_m_s`` after ``gust_length_m`` of flight), in a direction drawn
+    uniformly on the sphere from the generator; they start at the scheduled ``gust_times_s`` and at random
+    (Poisson) times of mean rate ``gust_rate_hz``.  Overlapping gusts add.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Final
+
+import numpy as np
+from numpy.typing import NDArray
+
+from gsoe.config import in_range, require
+
+FT_M: Final = 0.3048
+TURB_HEIGHT_MIN_M: Final = 10.0 * FT_M
+"""Lower end of MIL-F-8785C's low-altitude Dryden model (10 ft); lower heights use its values."""
+TURB_HEIGHT_MAX_M: Final = 1000.0 * FT_M
+"""Upper end of the low-altitude model (1000 ft); the mini-UAV flies below it, higher heights use its values."""
+TURB_AIRSPEED_MIN_M_S: Final = 1.0
+"""Airspeed below which the filters use this value (Taylor's hypothesis is meaningless at rest)."""
+LIGHT_W20_M_S: Final = 15.0 * 0.514444
+"""MIL-F-8785C wind speed at 20 ft for light turbulence (15 kt); moderate is 30 kt, severe 45 kt."""
+_SQRT3: Final = math.sqrt(3.0)
+_NOISE_BLOCK: Final = 4096
+_SERIES_X_MAX: Final = 1e-2
+"""Below it the series (error < x^5 / 840) replaces the closed forms, whose cancellation error is ~1e-16 / x^3."""
+
+
+@dataclass(frozen=True)
+class WindParams:
+    """True wind of a run (SI units, radians).  See the module docstring for the model of each part."""
+
+    speed_m_s: float = 0.0
+    from_rad: float = 0.0
+    ref_height_m: float = 6.0
+    shear: bool = True
+    roughness_m: float = 0.15 * FT_M
+    turbulence: bool = False
+    turbulence_w20_m_s: float = LIGHT_W20_M_S
+    turbulence_scale: float = 1.0
+    gusts: bool = False
+    gust_amplitude_m_s: float = 3.0
+    gust_length_m: float = 30.0
+    gust_rate_hz: float = 0.0
+    gust_times_s: tuple[float, ...] = ()
+
+    def __post_init__(self) -> None:
+        in_range(self.speed_m_s, 0.0, 60.0, "speed_m_s")
+        require(math.isfinite(self.from_rad), "from_rad", f"must be finite, got {self.from_rad!r}")
+        in_range(self.roughness_m, 1e-4, 3.0, "roughness_m")
+        in_range(self.ref_height_m, 0.1, 1000.0, "ref_height_m")
+        require(self.ref_height_m > self.roughness_m, "ref_height_m",
+                f"must be above roughness_m ({self.roughness_m} m), got {self.ref_height_m}")
+        in_range(self.turbulence_w20_m_s, 0.0, 60.0, "turbulence_w20_m_s")
+        in_range(self.turbulence_scale, 0.0, 10.0, "turbulence_scale")
+        in_range(self.gust_amplitude_m_s, 0.0, 40.0, "gust_amplitude_m_s")
+        in_range(self.gust_length_m, 1.0, 2000.0, "gust_length_m")
+        in_range(self.gust_rate_hz, 0.0, 1.0, "gust_rate_hz")
+        for i, t in enumerate(self.gust_times_s):
+            in_range(t, 0.0, 1e7, f"gust_times_s[{i}]")
+
+
+@dataclass(frozen=True, slots=True)
+class WindSample:
+    """Wind at one instant and place (NED, m/s, the air's velocity): the total and its parts."""
+
+    total_ned_m_s: NDArray[np.float64]
+    steady_ned_m_s: NDArray[np.float64]
+    turbulence_ned_m_s: NDArray[np.float64]
+    gust_ned_m_s: NDArray[np.float64]
+
+
+def _f1(x: float) -> float:
+    """int_0^1 u exp(-x u) du: a short series for small x (the closed form cancels), else the closed form."""
+    if x < _SERIES_X_MAX:
+        return 0.5 - x * (1.0 / 3.0 - x * (1.0 / 8.0 - x * (1.0 / 30.0 - x / 144.0)))
+    return (1.0 - math.exp(-x) * (1.0 + x)) / (x * x)
+
+
+def _f2(x: float) -> float:
+    """int_0^1 u^2 exp(-x u) du: a short series for small x (the closed form cancels), else the closed form."""
+    if x < _SERIES_X_MAX:
+        return 1.0 / 3.0 - x * (0.25 - x * (0.1 - x * (1.0 / 36.0 - x / 168.0)))
+    return (2.0 - math.exp(-x) * (x * x + 2.0 * x + 2.0)) / (x * x * x)
+
+
+class _FirstOrder:
+    """Unit-variance first-order Gauss-Markov state (Dryden longitudinal shape), exactly discretised."""
+
+    __slots__ = ("x",)
+
+    def __init__(self, xi: float) -> None:
+        self.x = xi
+
+    def output(self) -> float:
+        return self.x
+
+    def step(self, y: float, xi: float) -> float:
+        """Advance by ``y = dt / tau > 0`` with the standard normal draw ``xi``; returns the unit-variance output."""
+        phi = math.exp(-y)
+        self.x = phi * self.x + math.sqrt(-math.expm1(-2.0 * y)) * xi
+        return self.x
+
+
+class _SecondOrder:
+    """Unit-variance output of ``(1 + sqrt(3) tau s) / (1 + tau s)^2`` driven by white noise of intensity ``tau``.
+
+    States ``tau x1' = -x1 + n``, ``tau x2' = x1 - x2``; output ``sqrt(3) x1 + (1 - sqrt(3)) x2``.  The stationary
+    covariance of (x1, x2) is [[1/2, 1/4], [1/4, 1/4]] whatever tau, so a changing tau keeps the variance.
+    """
+
+    __slots__ = ("x1", "x2")
+
+    def __init__(self, xi1: float, xi2: float) -> None:
+        # stationary covariance [[1/2, 1/4], [1/4, 1/4]]: Cholesky [[sqrt(1/2), 0], [sqrt(1/8), sqrt(1/8)]]
+        self.x1 = math.sqrt(0.5) * xi1
+        self.x2 = math.sqrt(0.125) * (xi1 + xi2)
+
+    def output(self) -> float:
+        return _SQRT3 * self.x1 + (1.0 - _SQRT3) * self.x2
+
+    def step(self, y: float, xi1: float, xi2: float) -> float:
+        """Advance by ``y = dt / tau > 0`` with standard normal draws; returns the unit-variance output."""
+        e = math.exp(-y)
+        x1 = e * self.x1
+        x2 = e * (y * self.x1 + self.x2)
+        q11 = -0.5 * math.expm1(-2.0 * y)
+        q12 = y * y * _f1(2.0 * y)
+        q22 = y * y * y * _f2(2.0 * y)
+        l11 = math.sqrt(q11)
+        l21 = q12 / l11
+        l22 = math.sqrt(max(q22 - l21 * l21, 0.0))
+        self.x1 = x1 + l11 * xi1
+        self.x2 = x2 + l21 * xi1 + l22 * xi2
+        return _SQRT3 * self.x1 + (1.0 - _SQRT3) * self.x2
+
+
+@dataclass(frozen=True, slots=True)
+class _Gust:
+    start_s: float
+    duration_s: float
+    peak_ned_m_s: tuple[float, float, float]
+
+
+def dryden_sigmas_scales(height_m: float, w20_m_s: float) -> tuple[float, float, float, float]:
+    """MIL-F-8785C low-altitude Dryden ``(sigma_uv_m_s, sigma_w_m_s, L_uv_m, L_w_m)`` at ``height_m``."""
+    h_ft = min(max(height_m, TURB_HEIGHT_MIN_M), TURB_HEIGHT_MAX_M) / FT_M
+    k = 0.177 + 0.000823 * h_ft
+    sigma_w = 0.1 * w20_m_s
+    sigma_uv = sigma_w / k**0.4
+    l_w = h_ft * FT_M
+    l_uv = h_ft / k**1.2 * FT_M
+    return sigma_uv, sigma_w, l_uv, l_w
+
+
+class WindField:
+    """The wind the aircraft flies in; call :meth:`update` once per dynamics step.
+
+    ``rng`` drives the turbulence and the random gusts; the same seed and the same sequence of calls give the
+    same wind.
+    """
+
+    def __init__(self, params: WindParams, rng: np.random.Generator) -> None:
+        if not isinstance(params, WindParams):
+            raise TypeError(f"params must be WindParams, got {type(params).__name__}")
+        if not isinstance(rng, np.random.Generator):
+            raise TypeError(f"rng must be a numpy Generator, got {type(rng).__name__}")
+        self.params = params
+        self._rng = rng
+        to_rad = params.from_rad + math.pi
+        self._to_n = math.cos(to_rad)
+        self._to_e = math.sin(to_rad)
+        self._log_ref = math.log(params.ref_height_m / params.roughness_m)
+        self.reset()
+
+    def reset(self) -> None:
+        """Restart at ``t = 0``: turbulence states drawn from their stationary distribution, gusts rescheduled."""
+        self._noise = self._rng.standard_normal((_NOISE_BLOCK, 5))
+        self._k = 0
+        xi = self._draw()
+        self._u = _FirstOrder(xi[0])
+        self._v = _SecondOrder(xi[1], xi[2])
+        self._w = _SecondOrder(xi[3], xi[4])
+        self._gusts: list[_Gust] = []
+        self._scheduled = sorted(self.params.gust_times_s)
+        self._next_random_s = self._draw_gap() if self.params.gusts else math.inf
+
+    def _draw(self) -> NDArray[np.float64]:
+        if self._k >= _NOISE_BLOCK:
+            self._noise = self._rng.standard_normal((_NOISE_BLOCK, 5))
+            self._k = 0
+        row = self._noise[self._k]
+        self._k += 1
+        return row
+
+    def _draw_gap(self) -> float:
+        rate = self.params.gust_rate_hz
+        return float(self._rng.exponential(1.0 / rate)) if rate > 0.0 else math.inf
+
+    def steady_speed_m_s(self, height_m: float) -> float:
+        """Steady wind speed at ``height_m`` above the ground (with the shear profile when it is on)."""
+        p = self.params
+        if not p.shear:
+            return p.speed_m_s
+        return p.speed_m_s * max(math.log(max(height_m, p.roughness_m) / p.roughness_m), 0.0) / self._log_ref
+
+    def steady_ned(self, height_m: float) -> NDArray[np.float64]:
+        """Steady wind (air velocity, NED, m/s) at ``height_m``."""
+        s = self.steady_speed_m_s(height_m)
+        return np.array([s * self._to_n, s * self._to_e, 0.0])
+
+    def _start_gust(self, t_s: float, airspeed_m_s: float) -> None:
+        p = self.params
+        v = self._rng.standard_normal(3)
+        v /= max(float(np.linalg.norm(v)), 1e-12)
+        a = p.gust_amplitude_m_s
+        duration = 2.0 * p.gust_length_m / max(airspeed_m_s, TURB_AIRSPEED_MIN_M_S)
+        self._gusts.append(_Gust(t_s, duration, (a * float(v[0]), a * float(v[1]), a * float(v[2]))))
+
+    def _gust_at(self, t_s: float, airspeed_m_s: float) -> tuple[float, float, float]:
+        if not self.params.gusts:
+            return 0.0, 0.0, 0.0
+        while self._scheduled and self._scheduled[0] <= t_s:
+            self._start_gust(self._scheduled.pop(0), airspeed_m_s)
+        while self._next_random_s <= t_s:
+            self._start_gust(self._next_random_s, airspeed_m_s)
+            self._next_random_s += self._draw_gap()
+        gn = ge = gd = 0.0
+        alive = []
+        for g in self._gusts:
+            tau = t_s - g.start_s
+            if tau > g.duration_s:
+                continue
+            alive.append(g)
+            shape = 0.5 * (1.0 - math.cos(2.0 * math.pi * tau / g.duration_s))
+            gn += shape * g.peak_ned_m_s[0]
+            ge += shape * g.peak_ned_m_s[1]
+            gd += shape * g.peak_ned_m_s[2]
+        self._gusts = alive
+        return gn, ge, gd
+
+    def update(self, t_s: float, dt_s: float, height_m: float, airspeed_m_s: float) -> WindSample:
+        """Advance the turbulence by ``dt_s`` and return the wind at time ``t_s`` and height ``height_m`` (AGL).
+
+        ``airspeed_m_s`` is the aircraft's true airspeed (it sets the time scales of the frozen turbulence and the
+        duration of new gusts).  Non-finite inputs raise ``ValueError``.
+        """
+        if not (math.isfinite(t_s) and math.isfinite(dt_s) and math.isfinite(height_m)
+                and math.isfinite(airspeed_m_s)):
+            raise ValueError(f"wind update needs finite inputs, got t_s={t_s}, dt_s={dt_s}, height_m={height_m}, "
+                             f"airspeed_m_s={airspeed_m_s}")
+        if dt_s < 0.0:
+            raise ValueError(f"dt_s must be >= 0, got {dt_s}")
+        p = self.params
+        s = self.steady_speed_m_s(height_m)
+        sn, se = s * self._to_n, s * self._to_e
+        tn = te = td = 0.0
+        if p.turbulence:
+            v = max(airspeed_m_s, TURB_AIRSPEED_MIN_M_S)
+            sig_uv, sig_w, l_uv, l_w = dryden_sigmas_scales(height_m, p.turbulence_w20_m_s * p.turbulence_scale)
+            if dt_s > 0.0:
+                xi = self._draw()
+                y_uv = dt_s * v / l_uv
+                u = sig_uv * self._u.step(y_uv, xi[0])
+                lat = sig_uv * self._v.step(y_uv, xi[1], xi[2])
+                td = sig_w * self._w.step(dt_s * v / l_w, xi[3], xi[4])
+            else:
+                u, lat, td = sig_uv * self._u.output(), sig_uv * self._v.output(), sig_w * self._w.output()
+            tn = u * self._to_n - lat * self._to_e
+            te = u * self._to_e + lat * self._to_n
+        gn, ge, gd = self._gust_at(t_s, airspeed_m_s)
+        return WindSample(
+            total_ned_m_s=np.array([sn + tn + gn, se + te + ge, td + gd]),
+            steady_ned_m_s=np.array([sn, se, 0.0]),
+            turbulence_ned_m_s=np.array([tn, te, td]),
+            gust_ned_m_s=np.array([gn, ge, gd]),
+        )
