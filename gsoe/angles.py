@@ -2,14 +2,18 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-TWO_PI = 2.0 * np.pi
+TWO_PI = 2.0 * math.pi
 
 
 def wrap_pi(angle_rad: ArrayLike) -> NDArray[np.float64] | float:
     """Wrap to [-pi, pi)."""
+    if isinstance(angle_rad, float | int):  # fast path for scalars in hot loops
+        return (float(angle_rad) + math.pi) % TWO_PI - math.pi
     a = (np.asarray(angle_rad, dtype=float) + np.pi) % TWO_PI - np.pi
     return float(a) if a.ndim == 0 else a
 
@@ -22,6 +26,8 @@ def wrap_2pi(angle_rad: ArrayLike) -> NDArray[np.float64] | float:
 
 def angle_diff(a_rad: ArrayLike, b_rad: ArrayLike) -> NDArray[np.float64] | float:
     """Signed smallest difference ``a - b`` in [-pi, pi)."""
+    if isinstance(a_rad, float | int) and isinstance(b_rad, float | int):
+        return (float(a_rad) - float(b_rad) + math.pi) % TWO_PI - math.pi
     return wrap_pi(np.asarray(a_rad, dtype=float) - np.asarray(b_rad, dtype=float))
 
 

@@ -71,6 +71,7 @@ class _Cycle:
     last_xy: tuple[float, float]
     last_step_xy: tuple[float, float] | None
     n_valid: int
+    carried_step_xy: tuple[float, float] | None = None
 
 
 class GsoeEstimator:
@@ -101,6 +102,21 @@ class GsoeEstimator:
     def cycle_base(self) -> NDArray[np.float32] | None:
         """The current cycle's base image (for figures)."""
         return None if self._cycle is None else self._cycle.base_image
+
+    def raw_roi(self, R_nb: Rotation, margin_px: int) -> tuple[int, int, int, int] | None:
+        """Bounding box (x0, y0, x1, y1; end exclusive) of the raw pixels a base image taken at attitude ``R_nb``
+        reads, grown by ``margin_px`` (a template of the same cycle lies inside it).  For renderers that draw
+        only what the estimator reads; None when the base image would leave the raw frame."""
+        yaw = float(R_nb.as_euler("ZYX")[0])
+        mx, my, ok = self.vcam.base.sample_map(self.vcam.R_cn(R_nb), yaw, 1.0 / self.focal_px)
+        if not ok:
+            return None
+        w, h = self.camera.size_px
+        x0 = max(0, int(np.floor(mx.min())) - margin_px)
+        y0 = max(0, int(np.floor(my.min())) - margin_px)
+        x1 = min(w, int(np.ceil(mx.max())) + 1 + margin_px)
+        y1 = min(h, int(np.ceil(my.max())) + 1 + margin_px)
+        return x0, y0, x1, y1
 
     def push_attitude(self, s: AttitudeSample) -> bool:
         return self.buffer.push_attitude(s)
@@ -139,8 +155,11 @@ class GsoeEstimator:
         res = match_template(c.base_image, tpl.image, self.cfg.match, pred)
         xy = (res.x_px, res.y_px)
         step_xy = (xy[0] - c.last_xy[0], xy[1] - c.last_xy[1])
-        filtered = (self.cfg.cycle.data_filter and c.last_step_xy is not None
-                    and data_filter_fires(c.last_step_xy, step_xy, self.cfg.cycle.data_filter_zeta_px))
+        prev = c.last_step_xy if c.last_step_xy is not None else c.carried_step_xy
+        cc = self.cfg.cycle
+        filtered = prev is not None and (
+            (cc.data_filter and data_filter_fires(prev, step_xy, cc.data_filter_zeta_px))
+            or (cc.step_gate_px > 0 and math.hypot(step_xy[0] - prev[0], step_xy[1] - prev[1]) > cc.step_gate_px))
         valid = res.quality.valid and not filtered
         out = [self._step(t_us, c, xy, res.quality, valid, yaw_now, rel)]
         if not valid:
@@ -163,7 +182,17 @@ class GsoeEstimator:
         if old.n_valid > 0:
             self.buffer.update_bias(old.base_t_us, t_us)
         self._cycle = None
-        return self._start(t_us, image, att, height_agl_m)
+        out = self._start(t_us, image, att, height_agl_m)
+        new = self._cycle
+        step = old.last_step_xy if old.last_step_xy is not None else old.carried_step_xy
+        if new is not None and step is not None:
+            # image x = right, y = -forward; rotate the ground step into the new base heading
+            d = new.base_yaw_rad - old.base_yaw_rad
+            fwd, right = -step[1], step[0]
+            fwd2 = fwd * math.cos(d) + right * math.sin(d)
+            right2 = -fwd * math.sin(d) + right * math.cos(d)
+            new.carried_step_xy = (right2, -fwd2)
+        return out
 
     def _start(self, t_us: int, image: NDArray, att: Rotation, height_agl_m: float) -> list[GsoeStep]:
         yaw0 = float(att.as_euler("ZYX")[0])

@@ -95,7 +95,8 @@ def test_interp_matrix_reproduces_linear_functions():
         np.testing.assert_allclose(A @ (3.0 * nodes + 1.0), 3.0 * np.arange(n) + 1.0, atol=1e-12)
 
 
-@pytest.mark.parametrize("roll_deg,pitch_deg,dyaw_deg", [(0, 0, 0), (45, 0, 0), (-45, 10, 0), (-30, 10, 30), (20, -20, -60)])
+@pytest.mark.parametrize("roll_deg,pitch_deg,dyaw_deg",
+                         [(0, 0, 0), (45, 0, 0), (-45, 10, 0), (-30, 10, 30), (20, -20, -60)])
 def test_coarse_grid_map_matches_exact_projection(camera, roll_deg, pitch_deg, dyaw_deg):
     """The interpolated sampling map stays within 0.05 px of projecting every pixel's ray exactly."""
     sampler = PatchSampler(camera, 121, 73, (60.0, 36.0), 8)

@@ -1,0 +1,182 @@
+"""Figures and report of a simulated flight (``metrics.json``, PNG plots like the paper's figures, ``report.html``)."""
+
+from __future__ import annotations
+
+import html
+import json
+import math
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from sim import metrics as M
+
+if TYPE_CHECKING:
+    from sim.run import _Series
+    from sim.scenario import Scenario
+
+PLOT_DPI = 90
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.integer | np.floating):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    return str(o)
+
+
+def write_metrics(out_dir: Path, metrics: dict[str, Any]) -> Path:
+    p = Path(out_dir) / "metrics.json"
+    tmp = p.with_suffix(".json.tmp")
+    clean = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in metrics.items()}
+    tmp.write_text(json.dumps(clean, indent=2, sort_keys=True, default=_json_default))
+    tmp.replace(p)
+    return p
+
+
+def write_report(out_dir: Path, scn: Scenario, series: _Series, metrics: dict[str, Any]) -> None:
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_metrics(out_dir, metrics)
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    T = series.arrays("truth")
+    B = series.arrays("baseline")
+    E = series.arrays("ekf")
+    G = series.arrays("gnss")
+    figs: list[tuple[str, str]] = []
+
+    def save(fig: Any, name: str, caption: str) -> None:
+        fig.tight_layout()
+        fig.savefig(out_dir / name, dpi=PLOT_DPI)
+        plt.close(fig)
+        figs.append((name, caption))
+
+    if T["t_s"].size < 2:
+        _write_html(out_dir, scn, metrics, figs)
+        return
+    # fig. 6: trajectory
+    fig, ax = plt.subplots(figsize=(7, 6))
+    ax.plot(T["e"], T["n"], "k-", lw=1, label="truth")
+    if E["t_s"].size:
+        ax.plot(E["e"], E["n"], "b-", lw=0.8, label="EKF")
+    okg = G["ok"] > 0.5 if G["t_s"].size else np.zeros(0, bool)
+    if okg.any():
+        ax.plot(G["e"][okg], G["n"][okg], ".", ms=1, color="0.6", label="GNSS")
+    ax.set_xlabel("east [m]")
+    ax.set_ylabel("north [m]")
+    ax.set_aspect("equal", "datalim")
+    ax.legend()
+    save(fig, "trajectory.png", "Flight trajectory, top view (paper fig. 6)")
+    # fig. 7: height and airspeed
+    fig, ax = plt.subplots(2, 1, figsize=(8, 5), sharex=True)
+    ax[0].plot(T["t_s"], T["h"], "k-", lw=0.8)
+    ax[0].set_ylabel("height AGL [m]")
+    ax[1].plot(T["t_s"], T["tas"] * 3.6, "k-", lw=0.8)
+    ax[1].set_ylabel("TAS [km/h]")
+    ax[1].set_xlabel("time [s]")
+    save(fig, "altitude_airspeed.png", "Height above the reference ground and true airspeed (paper fig. 7)")
+    # fig. 8: sample distance
+    gs = np.hypot(T["vn"], T["ve"])
+    rate = float(scn.camera.rate_hz)
+    fig, ax = plt.subplots(figsize=(8, 3))
+    ax.plot(T["t_s"], gs / rate, "k-", lw=0.8, label="ground distance per frame [m]")
+    ax.plot(T["t_s"], T["h"] / _focal(metrics), "b-", lw=0.8, label="ground sample distance [m/px]")
+    ax.set_xlabel("time [s]")
+    ax.legend()
+    save(fig, "sample_distance.png", "GSOE sample distance (paper fig. 8)")
+    # fig. 9: merged TM cycle
+    cf = series.cycle_figure
+    if cf is not None and cf["path"]:
+        fig, ax = plt.subplots(figsize=(6, 4))
+        ax.imshow(cf["base"], cmap="gray", vmin=0, vmax=255)
+        u0, v0 = cf["ref_uv"]
+        path = np.array(cf["path"])
+        ax.plot(u0 + path[:, 0], v0 - path[:, 1], "r.-", ms=4)
+        half = 9.5
+        for dx, dy in path[:: max(1, len(path) // 4)]:
+            ax.add_patch(matplotlib.patches.Rectangle((u0 + dx - half, v0 - dy - half), 2 * half, 2 * half,
+                                                      fill=False, ec="y", lw=0.7))
+        ax.set_title(f"TM cycle {cf['cycle_id']} at t = {cf['t_s']:.1f} s (forward is up)")
+        save(fig, "tm_cycle.png", "One template-matching cycle merged into one image (paper fig. 9)")
+    # fig. 10: median drift per heading
+    true_drift = M.true_drift_rad(T["vn"], T["ve"], T["yaw"])
+    fig, ax = plt.subplots(figsize=(8, 4))
+    c, m = M.median_per_heading_deg(T["yaw"], true_drift)
+    ax.plot(c, m, "k.", ms=3, label="truth")
+    if G["t_s"].size and (G["ok"] > 0.5).sum() > 2:
+        from sim.run import _gnss_drift
+
+        tg, dg = _gnss_drift(G, T)
+        c, m = M.median_per_heading_deg(M.interp_angle(tg, T["t_s"], T["yaw"]), dg)
+        ax.plot(c, m, ".", color="0.6", ms=3, label="GNSS (eq. 18-21)")
+    if B["t_s"].size:
+        ok = B["released"] > 0.5
+        c, m = M.median_per_heading_deg(B["heading"][ok], B["drift"][ok])
+        ax.plot(c, m, "r.", ms=3, label="optical, paper chain")
+    if E["t_s"].size:
+        ok = E["valid"] > 0.5
+        c, m = M.median_per_heading_deg(E["heading"][ok], E["drift"][ok])
+        ax.plot(c, m, "b.", ms=3, label="EKF")
+    ax.set_xlabel("heading [deg]")
+    ax.set_ylabel("median drift [deg]")
+    ax.legend()
+    save(fig, "drift_vs_heading.png", "Median drift per 1-deg heading bin (paper fig. 10)")
+    # wind
+    if E["t_s"].size:
+        fig, ax = plt.subplots(2, 1, figsize=(8, 5), sharex=True)
+        for i, (key, sk, tk) in enumerate((("wn", "wn_sigma", "wsn"), ("we", "we_sigma", "wse"))):
+            ax[i].fill_between(E["t_s"], E[key] - E[sk], E[key] + E[sk], color="b", alpha=0.2, lw=0)
+            ax[i].plot(E["t_s"], E[key], "b-", lw=0.8, label="EKF +- 1 sigma")
+            ax[i].plot(T["t_s"], T[tk], "k-", lw=0.8, label="truth (steady)")
+            ax[i].plot(T["t_s"], T[key[:1] + key[1:]], color="0.7", lw=0.5, label="truth (total)")
+            if B["t_s"].size:
+                ok = (B["released"] > 0.5) & np.isfinite(B["ws"])
+                vel = -B["ws"][ok] * (np.cos(B["wd"][ok]) if i == 0 else np.sin(B["wd"][ok]))
+                ax[i].plot(B["t_s"][ok], vel, "r.", ms=2, label="paper chain (eq. 13-17)")
+            ax[i].set_ylabel(f"wind {'north' if i == 0 else 'east'} [m/s]")
+        ax[0].legend(fontsize=7)
+        ax[1].set_xlabel("time [s]")
+        save(fig, "wind.png", "Wind estimate (velocity of the air) with its 1-sigma band vs truth")
+        # position error
+        fig, ax = plt.subplots(figsize=(8, 3))
+        err = np.hypot(E["n"] - np.interp(E["t_s"], T["t_s"], T["n"]), E["e"] - np.interp(E["t_s"], T["t_s"], T["e"]))
+        sig = np.hypot(E["n_sigma"], E["e_sigma"])
+        ax.plot(E["t_s"], err, "b-", lw=0.8, label="horizontal position error")
+        ax.plot(E["t_s"], sig, "b:", lw=0.8, label="1-sigma")
+        for o in scn.sensors.gnss.outages:
+            ax.axvspan(o.start_s, o.start_s + o.length_s, color="r", alpha=0.1)
+        ax.set_yscale("log")
+        ax.set_xlabel("time [s]")
+        ax.set_ylabel("[m]")
+        ax.legend()
+        save(fig, "position_error.png", "EKF position error (GNSS outages shaded)")
+    _write_html(out_dir, scn, metrics, figs)
+
+
+def _focal(metrics: dict[str, Any]) -> float:
+    return float(metrics.get("focal_px", 351.86))
+
+
+def _write_html(out_dir: Path, scn: Scenario, metrics: dict[str, Any], figs: list[tuple[str, str]]) -> None:
+    rows = "".join(
+        f"<tr><td>{html.escape(k)}</td><td>{html.escape(_fmt(v))}</td></tr>" for k, v in sorted(metrics.items()))
+    imgs = "".join(f'<figure><img src="{n}" alt="{html.escape(c)}"><figcaption>{html.escape(c)}</figcaption>'
+                   f"</figure>" for n, c in figs)
+    page = (f"<!doctype html><html><head><meta charset='utf-8'><title>gsoe sim {html.escape(scn.name)}</title>"
+            "<style>body{font-family:sans-serif;max-width:1000px;margin:auto}td{padding:2px 8px}"
+            "img{max-width:100%}</style></head><body>"
+            f"<h1>Simulated flight: {html.escape(scn.name)}</h1><p>{html.escape(scn.description)}</p>"
+            f"<h2>Metrics</h2><table>{rows}</table><h2>Figures</h2>{imgs}</body></html>")
+    (out_dir / "report.html").write_text(page)
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, float):
+        return "nan" if not math.isfinite(v) else f"{v:.4g}"
+    return str(v)

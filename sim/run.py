@@ -1,0 +1,517 @@
+"""One simulated flight: JSBSim dynamics, wind, sensors, rendered camera, the optical estimator, the paper's
+baseline chain and the EKF, all on the simulation clock, with every figure measured against the truth.
+
+:func:`run_flight` is what ``gsoe sim`` and the Monte Carlo campaign call.  The loop, per dynamics step:
+
+1. the autopilot flies the scenario's mission; JSBSim advances one step and returns the truth;
+2. the sensor suite samples what is due (IMU, AHRS, pitot, baro, GNSS, camera exposure);
+3. IMU/AHRS samples feed the optical estimator's attitude buffer and the EKF prediction; pitot, baro and GNSS
+   are fused; a camera exposure is rendered (only the raw pixels the estimator reads, unless ``full_frame``),
+   with motion blur, noise and gain, and queued;
+4. a queued frame is processed once the attitude and gyro samples cover its timestamp; each optical step goes
+   to the baseline (paper 2.4-2.7) and to the EKF.
+
+Truth, sensor samples and estimates are kept in memory for the metrics and, with ``out_dir``, written as the CSV
+streams of :mod:`nav.logio` (the truth and estimator outputs once per camera frame, sensors at their own rates).
+Ctrl-C stops the flight cleanly: the logs written so far stay readable and the metrics say ``interrupted``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from fusion.config import ekf_config_from_raw
+from fusion.ekf import NavEkf, NavEstimate
+from gsoe.angles import angle_diff, wrap_2pi
+from gsoe.baseline import PaperBaseline
+from gsoe.camera import CameraModel
+from gsoe.cycle import GsoeEstimator
+from gsoe.types import AttitudeSample, GsoeStep
+from nav.configfile import load_gsoe_config
+from nav.logio import RunLog
+from sim import metrics as M
+from sim.autopilot import Autopilot, Waypoint
+from sim.dynamics import DynamicsParams, FlightDynamics
+from sim.render import CameraRenderer
+from sim.scenario import Scenario, gsoe_config_for
+from sim.sensors import SensorSuite
+from sim.textures import GroundWorld
+from sim.truth import TruthState
+from sim.wind import LIGHT_W20_M_S, WindParams
+
+log = logging.getLogger(__name__)
+
+# Raw-frame margin around the base image's footprint that the renderer draws (covers attitude error and a
+# template rotated against its base).
+ROI_MARGIN_PX = 12
+# Wind and drift figures are taken after this much flight, once the first turns have made the wind observable.
+SETTLE_S = 60.0
+# Milspec W20 (wind speed at 20 ft) per scenario severity: light 15 kt, moderate 30 kt, severe 45 kt.
+SEVERITY_W20_M_S = {"light": LIGHT_W20_M_S, "moderate": 2.0 * LIGHT_W20_M_S, "severe": 3.0 * LIGHT_W20_M_S}
+# Frames waiting longer than this for attitude samples are dropped (the AHRS stopped).
+MAX_FRAME_WAIT_US = 500_000
+# NEES state: position N/E, velocity N/E, wind N/E.
+NEES_DOF = 6
+US_PER_S = 1_000_000
+
+
+def wind_params(scn: Scenario) -> WindParams:
+    w = scn.wind
+    return WindParams(
+        speed_m_s=w.speed_m_s, from_rad=w.from_rad, ref_height_m=w.ref_height_m, shear=w.shear,
+        roughness_m=w.roughness_m, turbulence=w.turbulence,
+        turbulence_w20_m_s=SEVERITY_W20_M_S[w.turbulence_severity], turbulence_scale=w.turbulence_scale,
+        gusts=w.gusts, gust_amplitude_m_s=w.gust_amplitude_m_s, gust_length_m=w.gust_length_m,
+        gust_rate_hz=1.0 / w.gust_interval_s if w.gusts and w.gust_interval_s > 0 else 0.0,
+    )
+
+
+@dataclass
+class _Series:
+    """In-memory record of a flight for the metrics and plots."""
+
+    truth: dict[str, list[float]] = field(default_factory=lambda: {k: [] for k in (
+        "t_s", "n", "e", "d", "vn", "ve", "vd", "roll", "pitch", "yaw", "tas", "beta", "wn", "we", "wsn", "wse",
+        "h")})
+    baseline: dict[str, list[float]] = field(default_factory=lambda: {k: [] for k in (
+        "t_s", "drift", "heading", "released", "ws", "wd", "gs")})
+    ekf: dict[str, list[float]] = field(default_factory=lambda: {k: [] for k in (
+        "t_s", "drift", "drift_sigma", "wn", "we", "wn_sigma", "we_sigma", "ws", "wd", "n", "e", "n_sigma",
+        "e_sigma", "valid", "nees", "heading")})
+    gnss: dict[str, list[float]] = field(default_factory=lambda: {k: [] for k in ("t_s", "n", "e", "ok")})
+    gsd: dict[str, list[float]] = field(default_factory=lambda: {k: [] for k in ("t_s", "gsd")})
+    steps_valid: int = 0
+    steps_total: int = 0
+    cycle_figure: dict[str, Any] | None = None
+
+    def arrays(self, name: str) -> dict[str, np.ndarray]:
+        return {k: np.asarray(v, dtype=float) for k, v in getattr(self, name).items()}
+
+
+def _truth_record(tr: TruthState) -> dict[str, Any]:
+    return {
+        "t_us": tr.t_us, "pos_n_m": tr.pos_ned_m[0], "pos_e_m": tr.pos_ned_m[1], "pos_d_m": tr.pos_ned_m[2],
+        "vel_n_m_s": tr.vel_ned_m_s[0], "vel_e_m_s": tr.vel_ned_m_s[1], "vel_d_m_s": tr.vel_ned_m_s[2],
+        "roll_rad": tr.roll_rad, "pitch_rad": tr.pitch_rad, "yaw_rad": tr.yaw_rad, "tas_m_s": tr.tas_m_s,
+        "alpha_rad": tr.alpha_rad, "beta_rad": tr.beta_rad,
+        "wind_n_m_s": tr.wind_ned_m_s[0], "wind_e_m_s": tr.wind_ned_m_s[1], "wind_d_m_s": tr.wind_ned_m_s[2],
+        "wind_steady_n_m_s": tr.wind_steady_ned_m_s[0], "wind_steady_e_m_s": tr.wind_steady_ned_m_s[1],
+        "height_agl_m": tr.height_agl_m,
+        "drift_rad": float(angle_diff(math.atan2(tr.vel_ned_m_s[1], tr.vel_ned_m_s[0]), tr.yaw_rad)),
+    }
+
+
+def _step_record(s: GsoeStep) -> dict[str, Any]:
+    return {
+        "t_us": s.t_us, "base_t_us": s.base_t_us, "cycle_id": s.cycle_id, "step": s.step, "dx_px": s.dx_px,
+        "dy_px": s.dy_px, "base_yaw_rad": s.base_yaw_rad, "yaw_rad": s.yaw_rad, "gsd_m_px": s.gsd_m_px,
+        "height_agl_m": s.height_agl_m, "rel_rot_rad": s.rel_rot_rad, "psr": s.quality.psr,
+        "texture_std": s.quality.texture_std, "ssd_per_px": s.quality.ssd_per_px, "valid": s.valid,
+        "new_cycle": s.new_cycle,
+    }
+
+
+class _Timers:
+    def __init__(self) -> None:
+        self.s: dict[str, float] = {k: 0.0 for k in ("dynamics", "sensors", "render", "gsoe", "ekf", "log")}
+
+    def add(self, key: str, t0: float) -> float:
+        t1 = time.perf_counter()
+        self.s[key] += t1 - t0
+        return t1
+
+
+def run_flight(scn: Scenario, *, seed: int, duration_s: float | None = None, out_dir: Path | None = None,
+               progress: bool = False, config_path: str | Path | None = None, full_frame: bool = False
+               ) -> dict[str, Any]:
+    """Fly ``scn`` with ``seed``; returns the metrics dict (also written to ``out_dir/metrics.json``)."""
+    wall0 = time.perf_counter()
+    base_cfg, raw = load_gsoe_config(config_path)
+    gcfg = gsoe_config_for(scn, base_cfg)
+    ekf_cfg = ekf_config_from_raw(raw.get("ekf", {}))
+    camera = CameraModel.from_config(gcfg.camera)
+    duration = scn.duration_s if duration_s is None else float(duration_s)
+    if not (duration > 0 and math.isfinite(duration)):
+        raise ValueError(f"duration_s must be > 0, got {duration_s!r}")
+    rng = np.random.default_rng(seed)
+    rng_dyn, rng_sens, rng_cam = rng.spawn(3)
+
+    world = GroundWorld.from_name(scn.terrain.texture, seed=seed)
+    renderer = CameraRenderer(camera, world)
+    dyn = FlightDynamics(DynamicsParams(dt_s=scn.dt_s), wind_params(scn), rng_dyn)
+    st = scn.mission.start
+    trim = dyn.trim(st.north_m, st.east_m, st.height_m, st.airspeed_m_s, st.yaw_rad)
+    ap = Autopilot(trim=trim)
+    ap.set_mission([Waypoint(w.north_m, w.east_m, w.height_m, w.airspeed_m_s) for w in scn.mission.waypoints],
+                   loop=scn.mission.loop)
+    sensors = SensorSuite(scn.sensors, scn.camera, rng_sens)
+    est = GsoeEstimator(gcfg, camera)
+    baseline = PaperBaseline(gcfg.integrity)
+    ekf: NavEkf | None = None
+    runlog = RunLog(out_dir) if out_dir is not None else None
+    series = _Series()
+    timers = _Timers()
+    pending: deque[tuple[int, np.ndarray, float]] = deque()
+    last_att: AttitudeSample | None = None
+    last_att_t_us = -1
+    last_imu_t_us = -1
+    baro_alt_m = math.nan
+    in_outage: list[tuple[float, float]] = [(o.start_s, o.start_s + o.length_s) for o in scn.sensors.gnss.outages]
+    n_steps = int(round(duration / scn.dt_s))
+    truth = dyn.truth()
+    interrupted = False
+    crashed = ""
+    frames = 0
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=int(duration), unit="sim s", desc=f"gsoe sim {scn.name}", dynamic_ncols=True)
+    last_bar_s = 0
+
+    def _write(stream: str, rec: dict[str, Any]) -> None:
+        if runlog is not None:
+            runlog.write(stream, rec)
+
+    def _process_ready() -> None:
+        nonlocal frames
+        while pending and (pending[0][0] <= min(last_att_t_us, last_imu_t_us)
+                           or min(last_att_t_us, last_imu_t_us) - pending[0][0] > MAX_FRAME_WAIT_US):
+            t_us, image, h_m = pending.popleft()
+            t0 = time.perf_counter()
+            steps = est.process_frame(t_us, image, h_m)
+            t0 = timers.add("gsoe", t0)
+            frames += 1
+            for s in steps:
+                series.steps_total += 1
+                series.steps_valid += int(s.valid and not s.new_cycle)
+                _write("gsoe", _step_record(s))
+                _capture_cycle(s)
+                b = baseline.update(s)
+                if b is not None:
+                    series.baseline["t_s"].append(b.t_us / US_PER_S)
+                    series.baseline["drift"].append(b.drift_rad)
+                    series.baseline["heading"].append(b.heading_rad)
+                    series.baseline["released"].append(float(b.released))
+                    series.baseline["ws"].append(b.wind_speed_m_s)
+                    series.baseline["wd"].append(b.wind_from_rad)
+                    series.baseline["gs"].append(b.ground_speed_m_s)
+                    _write("baseline", {"t_us": b.t_us, "drift_rad": b.drift_rad, "heading_rad": b.heading_rad,
+                                        "ground_speed_m_s": b.ground_speed_m_s, "ata_rad": b.ata_rad,
+                                        "wind_speed_m_s": b.wind_speed_m_s, "wind_from_rad": b.wind_from_rad,
+                                        "released": b.released, "reason": b.reason})
+                if ekf is not None:
+                    ekf.fuse_optical(s)
+            timers.add("ekf", t0)
+
+    def _capture_cycle(s: GsoeStep) -> None:
+        """Keep one TM cycle (base image and template path) after the settle time for the merged figure."""
+        fig = series.cycle_figure
+        if s.new_cycle:
+            if fig is not None and fig.get("done"):
+                return
+            if fig is not None and len(fig["path"]) >= 8:
+                fig["done"] = True
+                return
+            if s.t_us / US_PER_S > min(SETTLE_S, 0.25 * duration) and est.cycle_base is not None:
+                series.cycle_figure = {"base": est.cycle_base.copy(), "ref_uv": est.ref_uv, "path": [],
+                                       "cycle_id": s.cycle_id, "t_s": s.t_us / US_PER_S}
+        elif fig is not None and not fig.get("done") and s.cycle_id == fig["cycle_id"] and s.valid:
+            fig["path"].append((s.dx_px, s.dy_px))
+
+    try:
+        for k in range(n_steps):
+            t0 = time.perf_counter()
+            cmd = ap.update(truth, scn.dt_s)
+            truth = dyn.step(cmd)
+            t0 = timers.add("dynamics", t0)
+            r = sensors.step(truth)
+            t0 = timers.add("sensors", t0)
+            t_s = truth.t_s
+            if r.imu is not None:
+                est.push_imu(r.imu)
+                last_imu_t_us = r.imu.t_us
+                _write("imu", {"t_us": r.imu.t_us, "gyro_x_rad_s": r.imu.gyro_b_rad_s[0],
+                               "gyro_y_rad_s": r.imu.gyro_b_rad_s[1], "gyro_z_rad_s": r.imu.gyro_b_rad_s[2],
+                               "accel_x_m_s2": r.imu.accel_b_m_s2[0], "accel_y_m_s2": r.imu.accel_b_m_s2[1],
+                               "accel_z_m_s2": r.imu.accel_b_m_s2[2]})
+            if r.ahrs is not None:
+                est.push_attitude(r.ahrs)
+                last_att = r.ahrs
+                last_att_t_us = r.ahrs.t_us
+                _write("attitude", {"t_us": r.ahrs.t_us, "roll_rad": r.ahrs.roll_rad, "pitch_rad": r.ahrs.pitch_rad,
+                                    "yaw_rad": r.ahrs.yaw_rad})
+            t0 = timers.add("gsoe", t0)
+            if ekf is not None and r.imu is not None and last_att is not None:
+                ekf.predict(r.imu, last_att)
+            if r.airspeed is not None:
+                baseline.set_airspeed(r.airspeed.tas_m_s)
+                if ekf is not None:
+                    ekf.fuse_airspeed(r.airspeed.t_us, r.airspeed.tas_m_s)
+                _write("airspeed", {"t_us": r.airspeed.t_us, "tas_m_s": r.airspeed.tas_m_s})
+            if r.baro is not None:
+                baro_alt_m = r.baro.alt_m
+                if ekf is not None:
+                    ekf.fuse_baro(r.baro.t_us, r.baro.alt_m)
+                _write("baro", {"t_us": r.baro.t_us, "alt_m": r.baro.alt_m})
+            if r.gnss is not None:
+                g = r.gnss
+                if g.fix_ok and ekf is None and last_att is not None:
+                    ekf = NavEkf(ekf_cfg, t_us=g.t_us, pos_ned_m=g.pos_ned_m, vel_ned_m_s=g.vel_ned_m_s)
+                elif ekf is not None:
+                    if g.fix_ok:
+                        ekf.fuse_gnss(g.t_us, g.pos_ned_m, g.vel_ned_m_s)
+                series.gnss["t_s"].append(g.t_us / US_PER_S)
+                series.gnss["n"].append(float(g.pos_ned_m[0]))
+                series.gnss["e"].append(float(g.pos_ned_m[1]))
+                series.gnss["ok"].append(float(g.fix_ok))
+                _write("gnss", {"t_us": g.t_us, "pos_n_m": g.pos_ned_m[0], "pos_e_m": g.pos_ned_m[1],
+                                "pos_d_m": g.pos_ned_m[2], "vel_n_m_s": g.vel_ned_m_s[0],
+                                "vel_e_m_s": g.vel_ned_m_s[1], "vel_d_m_s": g.vel_ned_m_s[2], "fix_ok": g.fix_ok,
+                                "n_sats": g.n_sats})
+            t0 = timers.add("ekf", t0)
+            if r.frame is not None:
+                R_nb = Rotation.from_euler("ZYX", [truth.yaw_rad, truth.pitch_rad, truth.roll_rad])
+                roi = None if full_frame else est.raw_roi(R_nb, ROI_MARGIN_PX)
+                if roi is not None or full_frame:
+                    image = renderer.render(truth.pos_ned_m, R_nb.as_matrix(), roi=roi,
+                                            exposure_s=r.frame.exposure_s, vel_ned_m_s=truth.vel_ned_m_s,
+                                            rates_b_rad_s=truth.rates_b_rad_s, noise_std=scn.camera.noise_std,
+                                            gain=scn.camera.gain, rng=rng_cam)
+                    if ekf is not None:
+                        h_m = ekf.estimate().height_agl_m
+                    else:
+                        h_m = baro_alt_m
+                    pending.append((r.frame.t_us, image, h_m))
+                t0 = timers.add("render", t0)
+                _record_frame(series, truth, ekf, runlog)
+                t0 = timers.add("log", t0)
+            if pending:
+                _process_ready()
+            if bar is not None and int(t_s) > last_bar_s:
+                bar.update(int(t_s) - last_bar_s)
+                last_bar_s = int(t_s)
+            del k
+    except KeyboardInterrupt:
+        interrupted = True
+        log.warning("interrupted at t = %.1f s: the logs written so far are kept", truth.t_s)
+    except Exception as e:  # a crashed flight still reports what it measured
+        crashed = f"{type(e).__name__}: {e}"
+        log.exception("flight stopped at t = %.1f s", truth.t_s)
+    finally:
+        if bar is not None:
+            bar.close()
+        if runlog is not None:
+            runlog.close()
+    wall = time.perf_counter() - wall0
+    out = compute_metrics(series, in_outage)
+    out.update(
+        scenario=scn.name, seed=seed, frames=frames, sim_s=truth.t_s, wall_s=wall,
+        realtime_factor=truth.t_s / wall if wall > 0 else math.nan,
+        time_split_s={k: round(v, 3) for k, v in timers.s.items()}, interrupted=interrupted, crashed=crashed,
+        optical_valid_frac=series.steps_valid / max(1, series.steps_total),
+    )
+    if out_dir is not None:
+        from sim.report import write_report
+
+        write_report(out_dir, scn, series, out)
+    return out
+
+
+def _record_frame(series: _Series, tr: TruthState, ekf: NavEkf | None, runlog: RunLog | None) -> None:
+    T = series.truth
+    T["t_s"].append(tr.t_s)
+    for key, v in zip(("n", "e", "d"), tr.pos_ned_m, strict=True):
+        T[key].append(float(v))
+    for key, v in zip(("vn", "ve", "vd"), tr.vel_ned_m_s, strict=True):
+        T[key].append(float(v))
+    T["roll"].append(tr.roll_rad)
+    T["pitch"].append(tr.pitch_rad)
+    T["yaw"].append(tr.yaw_rad)
+    T["tas"].append(tr.tas_m_s)
+    T["beta"].append(tr.beta_rad)
+    T["wn"].append(float(tr.wind_ned_m_s[0]))
+    T["we"].append(float(tr.wind_ned_m_s[1]))
+    T["wsn"].append(float(tr.wind_steady_ned_m_s[0]))
+    T["wse"].append(float(tr.wind_steady_ned_m_s[1]))
+    T["h"].append(tr.height_agl_m)
+    if runlog is not None:
+        runlog.write("truth", _truth_record(tr))
+    if ekf is None:
+        return
+    e = ekf.estimate()
+    E = series.ekf
+    E["t_s"].append(e.t_us / US_PER_S)
+    E["drift"].append(e.drift_rad)
+    E["drift_sigma"].append(e.drift_sigma_rad)
+    E["wn"].append(float(e.wind_ne_m_s[0]))
+    E["we"].append(float(e.wind_ne_m_s[1]))
+    E["wn_sigma"].append(float(e.wind_ne_sigma_m_s[0]))
+    E["we_sigma"].append(float(e.wind_ne_sigma_m_s[1]))
+    E["ws"].append(e.wind_speed_m_s)
+    E["wd"].append(e.wind_from_rad)
+    E["n"].append(float(e.pos_ne_m[0]))
+    E["e"].append(float(e.pos_ne_m[1]))
+    E["n_sigma"].append(float(e.pos_ne_sigma_m[0]))
+    E["e_sigma"].append(float(e.pos_ne_sigma_m[1]))
+    E["valid"].append(float(e.valid))
+    E["heading"].append(e.heading_rad)
+    E["nees"].append(_nees(e, series))
+    if runlog is not None:
+        runlog.write("ekf", e.as_record())
+        for st in ekf.status().values():
+            runlog.write("aid_status", st.as_record())
+
+
+def _nees(e: NavEstimate, series: _Series) -> float:
+    """NEES of [pos_ne, vel_ne, wind_ne] against the truth at the estimate's own time."""
+    T = series.truth
+    t = T["t_s"]
+    if not t:
+        return math.nan
+    t_q = e.t_us / US_PER_S
+    i = len(t) - 1
+    while i > 0 and t[i] > t_q:
+        i -= 1
+    j = min(i + 1, len(t) - 1)
+    w = 0.0 if j == i or t[j] == t[i] else (t_q - t[i]) / (t[j] - t[i])
+
+    def at(key: str) -> float:
+        return (1 - w) * T[key][i] + w * T[key][j]
+
+    truth = np.array([at("n"), at("e"), at("vn"), at("ve"), at("wn"), at("we")])
+    est = np.array([e.pos_ne_m[0], e.pos_ne_m[1], e.vel_ned_m_s[0], e.vel_ned_m_s[1], e.wind_ne_m_s[0],
+                    e.wind_ne_m_s[1]])
+    err = est - truth
+    try:
+        return float(err @ np.linalg.solve(e.cov_pvw, err))
+    except np.linalg.LinAlgError:
+        return math.nan
+
+
+def compute_metrics(series: _Series, outages: list[tuple[float, float]]) -> dict[str, Any]:
+    """All figures of ``metrics.json`` (EKF keys bare, the paper's chain with a ``baseline_`` prefix)."""
+    T = series.arrays("truth")
+    B = series.arrays("baseline")
+    E = series.arrays("ekf")
+    G = series.arrays("gnss")
+    out: dict[str, Any] = {}
+    if T["t_s"].size < 2:
+        return out
+    true_drift = M.true_drift_rad(T["vn"], T["ve"], T["yaw"])
+    steady_from = M.wind_from_rad(T["wsn"], T["wse"])
+    steady_speed = np.hypot(T["wsn"], T["wse"])
+
+    def truth_at(t_q: np.ndarray, key: str) -> np.ndarray:
+        return np.interp(t_q, T["t_s"], T[key])
+
+    def drift_truth_at(t_q: np.ndarray) -> np.ndarray:
+        return np.asarray(angle_diff(M.interp_angle(t_q, T["t_s"], true_drift + np.pi), np.pi))
+
+    # GNSS drift (paper eq. 18-21): consecutive fixes and the heading at the later one
+    gnss_drift_t, gnss_drift = _gnss_drift(G, T)
+
+    def block(prefix: str, t_q: np.ndarray, drift: np.ndarray, valid: np.ndarray, heading: np.ndarray,
+              ws: np.ndarray, wd: np.ndarray) -> None:
+        ok = valid & np.isfinite(drift)
+        err = M.abs_angle_errors_deg(drift[ok], drift_truth_at(t_q[ok]))
+        s = M.summary(err, f"{prefix}drift")
+        out[f"{prefix}drift_mae_deg"] = s[f"{prefix}drift_mae"]
+        out[f"{prefix}drift_median_deg"] = s[f"{prefix}drift_median"]
+        out[f"{prefix}drift_p95_deg"] = s[f"{prefix}drift_p95"]
+        out[f"{prefix}drift_max_deg"] = s[f"{prefix}drift_max"]
+        if gnss_drift_t.size and ok.any():
+            idx = np.clip(np.searchsorted(gnss_drift_t, t_q[ok]), 0, gnss_drift_t.size - 1)
+            near = np.abs(gnss_drift_t[idx] - t_q[ok]) < 0.5
+            out[f"{prefix}drift_mae_vs_gnss_deg"] = float(np.mean(M.abs_angle_errors_deg(
+                drift[ok][near], gnss_drift[idx][near]))) if near.any() else math.nan
+        else:
+            out[f"{prefix}drift_mae_vs_gnss_deg"] = math.nan
+        out[f"{prefix}heading_coverage"] = M.heading_coverage(T["yaw"][T["t_s"] > 5.0], heading[ok])
+        settled = ok & (t_q > SETTLE_S) & np.isfinite(ws)
+        if settled.any():
+            true_ws = np.interp(t_q[settled], T["t_s"], steady_speed)
+            true_wd = M.interp_angle(t_q[settled], T["t_s"], steady_from)
+            out[f"{prefix}wind_speed_rmse_m_s"] = M.rmse(ws[settled] - true_ws)
+            strong = true_ws >= 1.0
+            out[f"{prefix}wind_dir_rmse_deg"] = M.rmse(np.degrees(np.asarray(
+                angle_diff(wd[settled][strong], true_wd[strong])))) if strong.any() else math.nan
+        else:
+            out[f"{prefix}wind_speed_rmse_m_s"] = math.nan
+            out[f"{prefix}wind_dir_rmse_deg"] = math.nan
+        out[f"{prefix}n_estimates"] = int(ok.sum())
+
+    if B["t_s"].size:
+        block("baseline_", B["t_s"], B["drift"], B["released"] > 0.5, B["heading"], B["ws"], B["wd"])
+    if E["t_s"].size:
+        block("", E["t_s"], E["drift"], E["valid"] > 0.5, E["heading"], E["ws"], E["wd"])
+        # wind per axis and its consistency with the reported sigma
+        settled = E["t_s"] > SETTLE_S
+        if settled.any():
+            en = E["wn"][settled] - truth_at(E["t_s"][settled], "wsn")
+            ee = E["we"][settled] - truth_at(E["t_s"][settled], "wse")
+            out["wind_ne_rmse_m_s"] = [M.rmse(en), M.rmse(ee)]
+            out["wind_within_3sigma_frac"] = float(np.mean(
+                (np.abs(en) <= 3 * E["wn_sigma"][settled]) & (np.abs(ee) <= 3 * E["we_sigma"][settled])))
+        lo, hi = M.nees_bounds(NEES_DOF)
+        nees = E["nees"][np.isfinite(E["nees"])]
+        out["nees_in_bounds_frac"] = float(np.mean((nees >= lo) & (nees <= hi))) if nees.size else math.nan
+        out["nees_mean"] = float(np.mean(nees)) if nees.size else math.nan
+        out.update(_outage_metrics(E, T, outages))
+    return out
+
+
+def _gnss_drift(G: dict[str, np.ndarray], T: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    ok = G["ok"] > 0.5 if G["t_s"].size else np.zeros(0, bool)
+    if ok.sum() < 2:
+        return np.zeros(0), np.zeros(0)
+    t, n, e = G["t_s"][ok], G["n"][ok], G["e"][ok]
+    from gsoe.equations import gnss_drift_rad
+
+    yaw = M.interp_angle(t[1:], T["t_s"], T["yaw"])
+    d = np.asarray(gnss_drift_rad(n, e, yaw))
+    return t[1:], d
+
+
+def _outage_metrics(E: dict[str, np.ndarray], T: dict[str, np.ndarray], outages: list[tuple[float, float]]
+                    ) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    errs: list[np.ndarray] = []
+    pct: list[float] = []
+    for t0, t1 in outages:
+        sel = (E["t_s"] >= t0) & (E["t_s"] <= t1)
+        if sel.sum() < 2:
+            continue
+        tn = truth_n = np.interp(E["t_s"][sel], T["t_s"], T["n"])
+        te = np.interp(E["t_s"][sel], T["t_s"], T["e"])
+        err = np.hypot(E["n"][sel] - tn, E["e"][sel] - te)
+        errs.append(err)
+        dist = M.path_length_m(truth_n, te)
+        if dist > 0:
+            pct.append(100.0 * float(err[-1]) / dist)
+    if errs:
+        allerr = np.concatenate(errs)
+        out.update(pos_error_m_mean=float(np.mean(allerr)), pos_error_m_max=float(np.max(allerr)),
+                   pos_error_m_final=float(errs[-1][-1]))
+        out["dr_error_pct_of_distance"] = float(np.max(pct)) if pct else math.nan
+    else:
+        out.update(pos_error_m_mean=math.nan, pos_error_m_max=math.nan, pos_error_m_final=math.nan,
+                   dr_error_pct_of_distance=math.nan)
+    return out
+
+
+def default_out_dir() -> Path:
+    return Path(os.environ.get("GSOE_OUT", "out")) / "sim"
+
+
+__all__ = ["run_flight", "compute_metrics", "wind_params", "wrap_2pi"]

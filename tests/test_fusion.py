@@ -1,0 +1,321 @@
+"""Unit checks of the navigation EKF: layout, config, Jacobians, prediction, input hygiene, buffer, numerics."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+from scipy.optimize import approx_fprime
+
+from fusion import ekf as ekf_mod
+from fusion.bench import bench_ekf_step
+from fusion.config import EkfConfig, ekf_config_from_raw
+from fusion.ekf import AID_SOURCES, ImuIncrement, NavEkf, R_nb_321, propagate
+from fusion.measurements import (
+    BaroAltitude,
+    GnssPosition,
+    GnssVelocity,
+    OpticalDisplacement,
+    SyntheticSideslip,
+    TrueAirspeed,
+)
+from fusion.state import S, StateLayout
+from gsoe.config import ConfigError
+from gsoe.rotation import R_nb_from_euler
+from gsoe.types import AttitudeSample, GsoeStep, ImuSample, MatchQuality
+from nav.configfile import load_gsoe_config
+from tests.fusion_truth import TruthConfig, make_flight, run_ekf
+
+CFG0 = dataclasses.replace(EkfConfig(), fusion_delay_s=0.0)
+G_DOWN_SPECIFIC_FORCE = np.array([0.0, 0.0, -9.80665])   # level, unaccelerated: the accelerometer reads -g on z
+
+
+def _random_state(rng: np.random.Generator) -> np.ndarray:
+    x = np.zeros(S.dim)
+    x[S.pos_ne] = rng.uniform(-500, 500, 2)
+    x[S.pos_d] = -rng.uniform(50, 300)
+    x[S.vel_ne] = rng.uniform(-25, 25, 2)
+    x[S.vel_d] = rng.uniform(-3, 3)
+    x[S.wind_ne] = rng.uniform(-8, 8, 2)
+    x[S.accel_bias_b] = rng.normal(0, 0.05, 3)
+    x[S.yaw_bias] = rng.normal(0, 0.05)
+    x[S.baro_bias] = rng.normal(0, 3)
+    x[S.terrain_h] = rng.normal(0, 5)
+    x[S.tas_scale] = rng.normal(0, 0.03)
+    x[S.base_pos_ne] = x[S.pos_ne] - rng.uniform(-10, 10, 2)
+    x[S.base_pos_d] = x[S.pos_d] + rng.normal(0, 1)
+    # keep the aircraft flying forward through the air (the models' domain)
+    x[S.vel_ne] = x[S.wind_ne] + 18.0 * np.array([math.cos(0.3), math.sin(0.3)]) + rng.normal(0, 2, 2)
+    return x
+
+
+def _step(t_us: int, base_t_us: int, cycle: int, k: int, dx: float, dy: float, **kw) -> GsoeStep:
+    q = kw.pop("quality", MatchQuality(psr=15.0, texture_std=30.0, ssd_per_px=5.0, valid=True))
+    fields = dict(t_us=t_us, base_t_us=base_t_us, cycle_id=cycle, step=k, dx_px=dx, dy_px=dy, base_yaw_rad=0.0,
+                  yaw_rad=0.0, gsd_m_px=100.0 / 350.0, height_agl_m=100.0, focal_px=350.0, rel_rot_rad=0.01,
+                  quality=q, valid=True, new_cycle=k == 0)
+    fields.update(kw)
+    return GsoeStep(**fields)
+
+
+# --------------------------------------------------------------------------------------------------------------
+def test_state_layout_slices_by_name():
+    L = StateLayout([("a", 2), ("b", 1), ("c", 3)], groups={"ab": ("a", "b")})
+    assert (L.a, L.b, L.c, L.ab, L.dim) == (slice(0, 2), slice(2, 3), slice(3, 6), slice(0, 3), 6)
+    np.testing.assert_array_equal(L.idx("c", "a"), [3, 4, 5, 0, 1])
+    with pytest.raises(AttributeError, match="no field 'd'"):
+        _ = L.d
+    with pytest.raises(ValueError, match="not contiguous"):
+        StateLayout([("a", 1), ("b", 1), ("c", 1)], groups={"ac": ("a", "c")})
+    with pytest.raises(ValueError, match="fresh identifier"):
+        StateLayout([("a", 1), ("a", 2)])
+    # the filter's layout: every field once, groups over the right fields
+    assert S.dim == sum(S.size(f) for f in S.fields)
+    assert S.pos_ned == slice(S.pos_ne.start, S.pos_d.stop) and S.size("wind_ne") == 2
+
+
+def test_ekf_config_from_file_defaults_and_errors():
+    raw = load_gsoe_config()[1]
+    assert ekf_config_from_raw(raw) == EkfConfig()          # the [ekf] table documents the dataclass defaults
+    assert ekf_config_from_raw(raw["ekf"]) == EkfConfig()
+    with pytest.raises(ConfigError, match="ekf.gate_optical_nis"):
+        ekf_config_from_raw({"ekf": {"gate_optical_nis": -1.0}})
+    with pytest.raises(ConfigError, match="ekf.gate_optcal_nis: unknown key"):
+        ekf_config_from_raw({"gate_optcal_nis": 3.0})
+    with pytest.raises(ConfigError, match="ekf.fusion_delay_s"):
+        ekf_config_from_raw({"ekf": {"fusion_delay_s": math.inf}})
+
+
+def test_fast_rotation_matches_gsoe_rotation():
+    rng = np.random.default_rng(7)
+    for r, p, y in rng.uniform(-1.5, 1.5, (20, 3)):
+        np.testing.assert_allclose(R_nb_321(r, p, y), R_nb_from_euler(r, p, y), atol=1e-12)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_measurement_jacobians_match_finite_differences(seed):
+    rng = np.random.default_rng(seed)
+    x = _random_state(rng)
+    va = x[S.vel_ne] - x[S.wind_ne]
+    R_nb = R_nb_from_euler(*rng.uniform(-0.4, 0.4, 2), math.atan2(va[1], va[0]) + rng.uniform(-0.3, 0.3))
+    models = [OpticalDisplacement(focal_px=351.86, base_yaw_rad=rng.uniform(-3, 3)), TrueAirspeed(),
+              SyntheticSideslip(R_nb), BaroAltitude(), GnssPosition(3), GnssPosition(2), GnssVelocity(3),
+              GnssVelocity(2)]
+    for m in models:
+        H = m.jacobian(x)
+        z, H2 = m.linearise(x)
+        np.testing.assert_array_equal(H, H2)
+        np.testing.assert_allclose(z, m.predict(x))
+        eps = 1e-6 * np.maximum(1.0, np.abs(x))
+        H_fd = np.atleast_2d(approx_fprime(x, m.predict, eps))
+        assert H.shape == H_fd.shape == (z.size, S.dim)
+        np.testing.assert_allclose(H, H_fd, rtol=1e-4, atol=1e-6 * max(1.0, np.abs(H).max()),
+                                   err_msg=type(m).__name__)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_process_jacobian_matches_finite_differences(seed):
+    rng = np.random.default_rng(seed)
+    x = _random_state(rng)
+    dt = 0.0125
+    R = R_nb_from_euler(0.3, -0.1, 2.0)
+    f_b = np.array([0.5, 1.2, -9.5])
+    inc = ImuIncrement(dt, R @ f_b * dt, R * dt)
+    _, F = propagate(x, inc)
+    F_fd = approx_fprime(x, lambda xx: propagate(xx, inc)[0], 1e-6 * np.maximum(1.0, np.abs(x)))
+    np.testing.assert_allclose(F, F_fd, rtol=1e-4, atol=1e-7)
+
+
+def test_ideal_imu_dead_reckoning_follows_truth():
+    """No aiding at all: an ideal IMU and AHRS (at the IMU rate) integrated through turns and climbs stay on the
+    true trajectory (gravity sign, body-to-NED rotation, zero-order hold of the specific force)."""
+    ideal = TruthConfig(duration_s=30.0, ahrs_div=3, accel_noise_m_s2=0.0, accel_bias_std_m_s2=0.0, ahrs_noise_deg=0.0,
+                        ahrs_rp_bias_std_deg=0.0, ahrs_yaw_bias_deg=0.0, segments=((5.0, 0.0), (20.0, 12.0)))
+    fl = make_flight(ideal)
+    ekf = NavEkf(CFG0, t_us=0, pos_ned_m=fl.pos[0], vel_ned_m_s=fl.vel[0])
+    att = None
+    for _, _, kind, p in fl.events:
+        if kind == "att":
+            att = p
+        elif kind == "imu":
+            ekf.predict(p, att)
+    est = ekf.estimate()
+    k = fl.index(est.t_us)
+    travelled = np.sum(np.linalg.norm(np.diff(fl.pos[: k + 1], axis=0), axis=1))
+    assert travelled > 500.0
+    np.testing.assert_allclose(est.pos_ne_m, fl.pos[k, :2], atol=0.5)
+    np.testing.assert_allclose(est.vel_ned_m_s, fl.vel[k], atol=0.05)
+    assert est.height_m == pytest.approx(-fl.pos[k, 2], abs=0.3)
+
+
+# --------------------------------------------------------------------------------------------------------------
+def _flying_ekf(cfg: EkfConfig = CFG0) -> NavEkf:
+    ekf = NavEkf(cfg, t_us=0, pos_ned_m=[0.0, 0.0, -100.0], vel_ned_m_s=[20.0, 0.0, 0.0])
+    for k in range(1, 21):
+        t = k * 5000
+        ekf.predict(ImuSample(t, np.zeros(3), G_DOWN_SPECIFIC_FORCE.copy()), AttitudeSample(t, 0.0, 0.0, 0.0))
+    return ekf
+
+
+def test_non_finite_and_malformed_inputs_are_rejected_and_never_reach_the_state():
+    ekf = _flying_ekf()
+    x0, P0 = ekf.x, ekf.P
+    t = 100_000
+    nan, inf = math.nan, math.inf
+    ekf.fuse_airspeed(t, nan)
+    ekf.fuse_baro(t, inf)
+    ekf.fuse_gnss(t, [nan, 0.0, -100.0], [20.0, 0.0, inf])
+    ekf.fuse_optical(_step(t, t - 33_333, 0, 1, nan, 3.0))
+    ekf.predict(ImuSample(t + 5000, np.zeros(3), np.array([0.0, nan, -9.8])), AttitudeSample(t + 5000, 0, 0, 0))
+    st = ekf.status()
+    for src in ("airspeed", "baro", "gnss_pos", "gnss_vel", "optical", "imu"):
+        assert st[src].rejected and st[src].reason == ekf_mod.REASON_NON_FINITE, (src, st[src])
+    ekf.predict(ImuSample(t + 5000, np.zeros(3), G_DOWN_SPECIFIC_FORCE.copy()), AttitudeSample(t + 5000, nan, 0, 0))
+    assert ekf.status()["imu"].reason == ekf_mod.REASON_NON_FINITE
+    # malformed: wrong shapes, float time stamps, non-positive sigma, stale attitude, time going backwards
+    ekf.fuse_gnss(t, [1.0, 2.0, 3.0, 4.0], None)
+    assert ekf.status()["gnss_pos"].reason == ekf_mod.REASON_BAD_SHAPE
+    ekf.fuse_gnss(t, None, [20.0, 0.0], vel_sigma_ne_m_s=-1.0)
+    assert ekf.status()["gnss_vel"].reason == ekf_mod.REASON_BAD_SIGMA
+    ekf.fuse_baro(1e5, 100.0)
+    assert ekf.status()["baro"].reason == ekf_mod.REASON_BAD_TIME
+    ekf.predict(ImuSample(t + 5000, np.zeros(2), G_DOWN_SPECIFIC_FORCE.copy()), AttitudeSample(t + 5000, 0, 0, 0))
+    assert ekf.status()["imu"].reason == ekf_mod.REASON_BAD_SHAPE
+    ekf.predict(ImuSample(t + 5000, np.zeros(3), G_DOWN_SPECIFIC_FORCE.copy()), AttitudeSample(t - 500_000, 0, 0, 0))
+    assert ekf.status()["imu"].reason == ekf_mod.REASON_ATT_STALE
+    ekf.predict(ImuSample(50_000, np.zeros(3), G_DOWN_SPECIFIC_FORCE.copy()), AttitudeSample(50_000, 0, 0, 0))
+    assert ekf.status()["imu"].reason == ekf_mod.REASON_NOT_INCREASING
+    ekf.fuse_optical(_step(t, t - 33_333, 0, 1, 1.0, 3.0, focal_px=0.0))
+    assert ekf.status()["optical"].reason == ekf_mod.REASON_BAD_FOCAL
+    ekf.fuse_optical(_step(t, t - 33_333, 0, 1, 1.0, 3.0, quality=None))
+    assert ekf.status()["optical"].reason == ekf_mod.REASON_BAD_SHAPE
+    np.testing.assert_array_equal(ekf.x, x0)
+    np.testing.assert_array_equal(ekf.P, P0)
+    est = ekf.estimate()
+    assert np.isfinite([est.drift_rad, est.wind_speed_m_s, est.ground_speed_m_s, *est.pos_ne_m]).all()
+    # a late sample (older than what the filter processed) is rejected, not fused out of order
+    ekf.fuse_baro(10_000, 100.0)
+    assert ekf.status()["baro"].reason == ekf_mod.REASON_LATE
+    # and good data is still fused afterwards
+    ekf.fuse_baro(100_000, 100.0)
+    assert ekf.status()["baro"].fused
+    with pytest.raises(ValueError, match="pos_ned_m"):
+        NavEkf(CFG0, t_us=0, pos_ned_m=[0.0, nan, 0.0], vel_ned_m_s=[0.0, 0.0, 0.0])
+
+
+def test_covariance_reset_when_innovation_variance_below_observation_variance():
+    ekf = _flying_ekf()
+    P = ekf._kf.P.copy()                      # simulate a covariance that lost positive definiteness
+    i = S.pos_d.start
+    P[i, i] = -50.0
+    ekf._kf.P = P
+    ekf.fuse_baro(100_000, 100.0)
+    st = ekf.status()["baro"]
+    assert st.rejected and st.reason == ekf_mod.REASON_COV_RESET
+    Pn = ekf.P
+    assert Pn[i, i] == pytest.approx(CFG0.init_pos_d_sigma_m**2)
+    assert Pn[S.baro_bias.start, S.baro_bias.start] == pytest.approx(CFG0.init_baro_bias_sigma_m**2)
+    np.testing.assert_array_equal(Pn, Pn.T)
+    assert np.linalg.eigvalsh(Pn).min() > -1e-9
+    ekf.predict(ImuSample(105_000, np.zeros(3), G_DOWN_SPECIFIC_FORCE.copy()), AttitudeSample(105_000, 0, 0, 0))
+    ekf.fuse_baro(105_000, 100.0)
+    assert ekf.status()["baro"].fused
+
+
+def test_joseph_update_keeps_P_symmetric_positive_and_matches_textbook_kalman():
+    """One scalar and one 2-D update against the textbook KF on the same linearisation (an independent formula)."""
+    ekf = _flying_ekf()
+    for fuse, model, z, R in (
+        (lambda e: e.fuse_baro(100_000, 103.0), BaroAltitude(), np.array([103.0]), BaroAltitude.noise(CFG0)),
+        (lambda e: e.fuse_gnss(100_000, [2.0, -1.0], None), GnssPosition(2), np.array([2.0, -1.0]),
+         GnssPosition(2).noise(CFG0)),
+    ):
+        x, P = ekf.x, ekf.P
+        H = model.jacobian(x)
+        Sm = H @ P @ H.T + R
+        K = P @ H.T @ np.linalg.inv(Sm)
+        x_ref = x + K @ (z - model.predict(x))
+        P_ref = (np.eye(S.dim) - K @ H) @ P
+        fuse(ekf)
+        np.testing.assert_allclose(ekf.x, x_ref, atol=1e-9)
+        np.testing.assert_allclose(ekf.P, P_ref, atol=1e-9)
+        np.testing.assert_array_equal(ekf.P, ekf.P.T)
+        assert np.linalg.eigvalsh(ekf.P).min() > -1e-9
+
+
+def test_status_records_have_fixed_columns():
+    ekf = _flying_ekf()
+    st = ekf.status()
+    assert tuple(st) == AID_SOURCES
+    keys = None
+    for s in st.values():
+        rec = s.as_record()
+        keys = keys or list(rec)
+        assert list(rec) == keys
+    assert st["imu"].fused and st["imu"].n_fused == 20
+    assert set(ekf.estimate().as_record()) >= {"t_us", "wind_from_rad", "drift_rad", "ata_rad", "valid"}
+
+
+# --------------------------------------------------------------------------------------------------------------
+def _short_flight():
+    return make_flight(TruthConfig(duration_s=20.0, seed=11))
+
+
+def test_delayed_horizon_fuses_late_camera_and_airspeed_at_their_own_time():
+    """Camera steps delivered 70 ms and airspeed 30 ms after their stamps (behind newer IMU samples), with a 0.1 s
+    fusion delay, give the same filter as the same samples fed in time order."""
+    fl = _short_flight()
+    ordered = run_ekf(fl, dataclasses.replace(EkfConfig(), fusion_delay_s=0.1))
+    late = {"optical": 70_000, "tas": 30_000}
+    arrivals = sorted(fl.events, key=lambda e: (e[0] + late.get(e[2], 0), e[1]))
+    fl_late = dataclasses.replace(fl, events=arrivals)
+    delayed = run_ekf(fl_late, dataclasses.replace(EkfConfig(), fusion_delay_s=0.1))
+    assert delayed.statuses[-1]["optical"].n_fused == ordered.statuses[-1]["optical"].n_fused > 400
+    assert delayed.statuses[-1]["optical"].n_rejected == 0
+    np.testing.assert_allclose(delayed.ekf.x, ordered.ekf.x, atol=1e-6)
+    # without the delay the same late samples are refused (late) or anchored, never fused out of order
+    zero = run_ekf(fl_late, CFG0)
+    st = zero.statuses[-1]
+    assert st["airspeed"].n_rejected > 0 and st["airspeed"].reason == ekf_mod.REASON_LATE
+    assert np.linalg.norm(zero.pos_err[-1]) < 3.0
+
+
+def test_missed_base_snapshot_anchors_the_cycle_on_its_first_step():
+    """The caller never pushes the cycles' base steps: when a cycle's first step arrives its base time is already
+    behind the filter, so that step becomes the anchor and the later steps are fused as differences to it."""
+    fl = _short_flight()
+    no_base = lambda ev: not (ev[2] == "optical" and ev[3].step == 0)  # noqa: E731
+    anchored = run_ekf(fl, CFG0, gnss_until_s=5.0, event_filter=no_base)
+    reasons = {v.reason for v in anchored.step_status.values()}
+    assert ekf_mod.REASON_ANCHORED in reasons
+    st = anchored.statuses[-1]["optical"]
+    assert st.n_fused > 300 and st.n_rejected == 0
+    assert np.linalg.norm(anchored.pos_err[-1]) < 2.0
+    assert np.abs(anchored.vel_err[-20:]).max() < 0.5
+
+
+def test_gnss_position_reset_after_continuous_rejection():
+    ekf = _flying_ekf()
+    t = 100_000
+    ekf.fuse_gnss(t, [500.0, 0.0, -100.0], None)          # 500 m off: rejected by the gate
+    assert ekf.status()["gnss_pos"].reason == ekf_mod.REASON_GATE
+    for k in range(1, 30):
+        tk = t + k * 200_000
+        for j in range(40):
+            ti = tk - 200_000 + (j + 1) * 5000
+            ekf.predict(ImuSample(ti, np.zeros(3), G_DOWN_SPECIFIC_FORCE.copy()), AttitudeSample(ti, 0, 0, 0))
+        ekf.fuse_gnss(tk, [500.0 + 20.0 * tk / 1e6, 0.0, -100.0], None)
+        if ekf.status()["gnss_pos"].reason == ekf_mod.REASON_RESET_TO_MEAS:
+            break
+    assert ekf.status()["gnss_pos"].reason == ekf_mod.REASON_RESET_TO_MEAS
+    assert (tk - t) / 1e6 >= CFG0.gnss_reset_after_s
+    assert ekf.estimate().pos_ne_m[0] == pytest.approx(500.0 + 20.0 * tk / 1e6, abs=1e-6)
+
+
+def test_bench_reports_figures():
+    r = bench_ekf_step(30)
+    assert r["n_frames"] == 30 and r["imu_per_frame"] == 8
+    for k in ("frame_us_median", "imu_us_per_frame", "optical_us", "airspeed_us", "baro_us"):
+        assert math.isfinite(r[k]) and r[k] > 0.0
