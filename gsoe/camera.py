@@ -86,6 +86,27 @@ class CameraModel:
         px[~inside] = -1.0
         return px, inside
 
+    def project_in_frame(self, rays_c: NDArray[np.float64]) -> NDArray[np.float64] | None:
+        """Lean :meth:`project` for the per-frame path: pixels (N, 2) if every ray lands inside the image, else None."""
+        z = rays_c[:, 2]
+        norm = np.sqrt(np.einsum("ij,ij->i", rays_c, rays_c))
+        if not np.all(z > self._cos_max_off_axis * norm):
+            return None
+        obj = rays_c.reshape(-1, 1, 3)
+        if self.model == "fisheye":
+            img, _ = cv2.fisheye.projectPoints(obj, _ZERO3, _ZERO3, self.K, self.D)
+        else:
+            img, _ = cv2.projectPoints(obj, _ZERO3, _ZERO3, self.K, self.D)
+        px = img.reshape(-1, 2)
+        w, h = self.size_px
+        if px[:, 0].min() < -0.5 or px[:, 1].min() < -0.5 or px[:, 0].max() > w - 0.5 or px[:, 1].max() > h - 0.5:
+            return None
+        return px
+
+    @property
+    def _cos_max_off_axis(self) -> float:
+        return float(np.cos(self.max_off_axis_rad))
+
     def unproject(self, pixels: NDArray[np.float64]) -> NDArray[np.float64]:
         """Unit rays in the camera frame, shape (N, 3), for pixel coordinates (N, 2)."""
         pts = np.ascontiguousarray(pixels, dtype=np.float64).reshape(-1, 1, 2)

@@ -22,14 +22,15 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
+from gsoe import quat
 from gsoe.angles import circular_mean, wrap_pi
 from gsoe.attitude import US_PER_S, AttitudeBuffer
 from gsoe.camera import CameraModel
 from gsoe.config import GsoeConfig
 from gsoe.integrity import data_filter_fires
 from gsoe.matching import match_template
+from gsoe.quat import Quat
 from gsoe.stabilise import VirtualNadirCamera
 from gsoe.types import AttitudeSample, GsoeStep, ImuSample, MatchQuality
 
@@ -63,7 +64,7 @@ class _Cycle:
     cycle_id: int
     base_t_us: int
     base_yaw_rad: float
-    R_nb0: Rotation
+    q_nb0: Quat
     base_image: NDArray[np.float32]
     height_agl_m: float
     gsd_m_px: float
@@ -103,11 +104,11 @@ class GsoeEstimator:
         """The current cycle's base image (for figures)."""
         return None if self._cycle is None else self._cycle.base_image
 
-    def raw_roi(self, R_nb: Rotation, margin_px: int) -> tuple[int, int, int, int] | None:
+    def raw_roi(self, R_nb: NDArray[np.float64], margin_px: int) -> tuple[int, int, int, int] | None:
         """Bounding box (x0, y0, x1, y1; end exclusive) of the raw pixels a base image taken at attitude ``R_nb``
         reads, grown by ``margin_px`` (a template of the same cycle lies inside it).  For renderers that draw
         only what the estimator reads; None when the base image would leave the raw frame."""
-        yaw = float(R_nb.as_euler("ZYX")[0])
+        yaw = math.atan2(R_nb[1, 0], R_nb[0, 0])
         mx, my, ok = self.vcam.base.sample_map(self.vcam.R_cn(R_nb), yaw, 1.0 / self.focal_px)
         if not ok:
             return None
@@ -139,12 +140,13 @@ class GsoeEstimator:
         if c is None:
             return self._start(t_us, image, att, height_agl_m)
         rel = self.buffer.relative_rotation(c.base_t_us, t_us, self.cfg.stab.use_gyro)
-        R_nb = c.R_nb0 * rel if rel is not None else att
+        q_nb = quat.mul(c.q_nb0, rel) if rel is not None else att
+        R_nb = quat.to_matrix(q_nb)
         ratio = c.height_agl_m / height_agl_m if (math.isfinite(height_agl_m) and height_agl_m > 0
                                                   and math.isfinite(c.height_agl_m)) else 1.0
         if not self.cfg.stab.scale_template_to_base:
             ratio = 1.0
-        yaw_now = float(R_nb.as_euler("ZYX")[0])
+        yaw_now = math.atan2(R_nb[1, 0], R_nb[0, 0])
         tpl = self.vcam.sample_template(image, R_nb, c.base_yaw_rad, ratio)
         c.step += 1
         if not tpl.valid:
@@ -174,11 +176,11 @@ class GsoeEstimator:
         return out
 
     # ------------------------------------------------------------------------------------------------------
-    def _attitude_ok(self, att: Rotation) -> bool:
-        _, pitch, roll = att.as_euler("ZYX")
+    def _attitude_ok(self, att: Quat) -> bool:
+        roll, pitch, _ = quat.to_euler321(att)
         return abs(roll) <= self._roll_lim and abs(pitch) <= self._pitch_lim
 
-    def _restart(self, t_us: int, image: NDArray, att: Rotation, height_agl_m: float, old: _Cycle) -> list[GsoeStep]:
+    def _restart(self, t_us: int, image: NDArray, att: Quat, height_agl_m: float, old: _Cycle) -> list[GsoeStep]:
         if old.n_valid > 0:
             self.buffer.update_bias(old.base_t_us, t_us)
         self._cycle = None
@@ -194,28 +196,28 @@ class GsoeEstimator:
             new.carried_step_xy = (right2, -fwd2)
         return out
 
-    def _start(self, t_us: int, image: NDArray, att: Rotation, height_agl_m: float) -> list[GsoeStep]:
-        yaw0 = float(att.as_euler("ZYX")[0])
-        patch = self.vcam.sample_base(image, att, yaw0)
+    def _start(self, t_us: int, image: NDArray, att: Quat, height_agl_m: float) -> list[GsoeStep]:
+        yaw0 = quat.to_euler321(att)[2]
+        patch = self.vcam.sample_base(image, quat.to_matrix(att), yaw0)
         if not patch.valid:
             return []
         h_ok = math.isfinite(height_agl_m) and height_agl_m > 0
-        c = _Cycle(cycle_id=self._next_id, base_t_us=t_us, base_yaw_rad=yaw0, R_nb0=att, base_image=patch.image,
+        c = _Cycle(cycle_id=self._next_id, base_t_us=t_us, base_yaw_rad=yaw0, q_nb0=att, base_image=patch.image,
                    height_agl_m=height_agl_m if h_ok else math.nan,
                    gsd_m_px=height_agl_m / self.focal_px if h_ok else math.nan,
                    step=0, last_xy=self.ref_uv, last_step_xy=None, n_valid=0)
         self._next_id += 1
         self._cycle = c
         q = MatchQuality(psr=math.inf, texture_std=float(np.std(patch.image)), ssd_per_px=0.0, valid=True)
-        return [self._step(t_us, c, self.ref_uv, q, True, yaw0, Rotation.identity(), new_cycle=True)]
+        return [self._step(t_us, c, self.ref_uv, q, True, yaw0, quat.IDENTITY, new_cycle=True)]
 
     def _step(self, t_us: int, c: _Cycle, xy: tuple[float, float], q: MatchQuality, valid: bool, yaw_rad: float,
-              rel: Rotation | None, new_cycle: bool = False) -> GsoeStep:
+              rel: Quat | None, new_cycle: bool = False) -> GsoeStep:
         u0, v0 = self.ref_uv
         return GsoeStep(
             t_us=t_us, base_t_us=c.base_t_us, cycle_id=c.cycle_id, step=c.step,
             dx_px=float(xy[0] - u0), dy_px=float(v0 - xy[1]),
             base_yaw_rad=c.base_yaw_rad, yaw_rad=yaw_rad, gsd_m_px=c.gsd_m_px, height_agl_m=c.height_agl_m,
-            focal_px=self.focal_px, rel_rot_rad=float(rel.magnitude()) if rel is not None else math.nan,
+            focal_px=self.focal_px, rel_rot_rad=quat.angle(rel) if rel is not None else math.nan,
             quality=q, valid=valid, new_cycle=new_cycle,
         )

@@ -23,22 +23,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 from gsoe.camera import CameraModel
+from gsoe.matching import to_intensity
 from gsoe.rotation import R_z
-
-# Paper eq. 4 weights (ITU-R BT.601 luma) for B, G, R as OpenCV orders them.
-_LUMA_BGR = np.array([0.114, 0.587, 0.299], dtype=np.float32)
-
-
-def to_intensity(image: NDArray) -> NDArray[np.float32]:
-    """Paper eq. 4: intensity = 0.299 R' + 0.587 G' + 0.114 B' (input BGR as OpenCV gives it; grey passes)."""
-    if image.ndim == 2:
-        return image.astype(np.float32, copy=False)
-    if image.ndim == 3 and image.shape[2] == 3:
-        return image.astype(np.float32, copy=False) @ _LUMA_BGR
-    raise ValueError(f"expected a grey (H, W) or BGR (H, W, 3) image, got shape {image.shape}")
 
 
 def _interp_matrix(n_out: int, step: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -78,13 +66,13 @@ class PatchSampler:
         self.ref_uv = ref_uv
         nodes_u, self._A_u = _interp_matrix(width_px, grid_px)
         nodes_v, self._A_v = _interp_matrix(height_px, grid_px)
+        self._A_uT = np.ascontiguousarray(self._A_u.T)
         uu, vv = np.meshgrid(nodes_u, nodes_v)
         # ground offsets of the grid nodes in pixels: forward (x) and right (y) in the heading frame
         self._fwd_px = (ref_uv[1] - vv).ravel()
         self._right_px = (uu - ref_uv[0]).ravel()
         self._grid_shape = uu.shape
-        w, h = camera.size_px
-        self._raw_bounds = (w - 1.0, h - 1.0)
+        self._rays_h = np.ones((self._fwd_px.size, 3))
 
     def sample_map(self, R_cn: NDArray[np.float64], base_yaw_rad: float, scale: float,
                    offset_fwd_right_px: tuple[float, float] = (0.0, 0.0)
@@ -95,19 +83,17 @@ class PatchSampler:
         height (``1 / focal_px`` times the height ratio base/current); ``offset_fwd_right_px`` shifts the
         reference ground point (in stabilised pixels).
         """
-        n = self._fwd_px.size
-        rays_h = np.empty((n, 3))
+        rays_h = self._rays_h
         rays_h[:, 0] = (self._fwd_px + offset_fwd_right_px[0]) * scale
         rays_h[:, 1] = (self._right_px + offset_fwd_right_px[1]) * scale
-        rays_h[:, 2] = 1.0
         rays_c = rays_h @ (R_cn @ R_z(base_yaw_rad)).T
-        px, ok = self.camera.project(rays_c)
-        if not ok.all():
+        px = self.camera.project_in_frame(rays_c)
+        if px is None:
             return np.empty((0, 0), np.float32), np.empty((0, 0), np.float32), False
         gx = px[:, 0].reshape(self._grid_shape)
         gy = px[:, 1].reshape(self._grid_shape)
-        map_x = (self._A_v @ gx @ self._A_u.T).astype(np.float32)
-        map_y = (self._A_v @ gy @ self._A_u.T).astype(np.float32)
+        map_x = (self._A_v @ gx @ self._A_uT).astype(np.float32)
+        map_y = (self._A_v @ gy @ self._A_uT).astype(np.float32)
         return map_x, map_y, True
 
     def sample(self, raw: NDArray, R_cn: NDArray[np.float64], base_yaw_rad: float, scale: float) -> Patch:
@@ -129,13 +115,14 @@ class VirtualNadirCamera:
         self.base = PatchSampler(camera, base_size_px[0], base_size_px[1], base_ref_uv, grid_px)
         self.template = PatchSampler(camera, template_px, template_px, (half, half), grid_px)
 
-    def R_cn(self, R_nb: Rotation) -> NDArray[np.float64]:
-        """NED-to-camera rotation for a body attitude."""
-        return self.camera.R_bc.T @ R_nb.inv().as_matrix()
+    def R_cn(self, R_nb: NDArray[np.float64]) -> NDArray[np.float64]:
+        """NED-to-camera rotation for a body attitude ``R_nb`` (3x3)."""
+        return self.camera.R_bc.T @ R_nb.T
 
-    def sample_base(self, raw: NDArray, R_nb: Rotation, base_yaw_rad: float) -> Patch:
+    def sample_base(self, raw: NDArray, R_nb: NDArray[np.float64], base_yaw_rad: float) -> Patch:
         return self.base.sample(raw, self.R_cn(R_nb), base_yaw_rad, 1.0 / self.focal_px)
 
-    def sample_template(self, raw: NDArray, R_nb: Rotation, base_yaw_rad: float, height_ratio: float) -> Patch:
+    def sample_template(self, raw: NDArray, R_nb: NDArray[np.float64], base_yaw_rad: float,
+                        height_ratio: float) -> Patch:
         """Template at the current nadir; ``height_ratio = h_base / h_now`` rescales it to the base image's GSD."""
         return self.template.sample(raw, self.R_cn(R_nb), base_yaw_rad, height_ratio / self.focal_px)

@@ -120,7 +120,7 @@ def _time_render(camera: CameraModel, texture: str, flight: ScriptedFlight, cfg:
         t0 = time.perf_counter()
         renderer.render(tr.pos_ned_m, R.as_matrix())
         t1 = time.perf_counter()
-        renderer.render(tr.pos_ned_m, R.as_matrix(), roi=est.raw_roi(R, 12))
+        renderer.render(tr.pos_ned_m, R.as_matrix(), roi=est.raw_roi(R.as_matrix(), 12))
         t2 = time.perf_counter()
         full.append(t1 - t0)
         roi.append(t2 - t1)

@@ -57,7 +57,7 @@ def fly_optical(flight: ScriptedFlight, cfg: GsoeConfig, camera: CameraModel, re
         tr = flight.truth(t_frame)
         t_us = int(round(t_frame * 1e6))
         R = Rotation.from_euler("ZYX", [tr.yaw_rad, tr.pitch_rad, tr.roll_rad])
-        roi = None if full_frame else est.raw_roi(R, ROI_MARGIN_PX)
+        roi = None if full_frame else est.raw_roi(R.as_matrix(), ROI_MARGIN_PX)
         image = renderer.render(tr.pos_ned_m, R.as_matrix(), roi=roi)
         truth_by_t[t_us] = tr
         for s in est.process_frame(t_us, image, tr.height_agl_m):

@@ -282,7 +282,7 @@ def run_flight(scn: Scenario, *, seed: int, duration_s: float | None = None, out
             t0 = timers.add("ekf", t0)
             if r.frame is not None:
                 R_nb = Rotation.from_euler("ZYX", [truth.yaw_rad, truth.pitch_rad, truth.roll_rad])
-                roi = None if full_frame else est.raw_roi(R_nb, ROI_MARGIN_PX)
+                roi = None if full_frame else est.raw_roi(R_nb.as_matrix(), ROI_MARGIN_PX)
                 if roi is not None or full_frame:
                     image = renderer.render(truth.pos_ned_m, R_nb.as_matrix(), roi=roi,
                                             exposure_s=r.frame.exposure_s, vel_ned_m_s=truth.vel_ned_m_s,
@@ -320,6 +320,9 @@ def run_flight(scn: Scenario, *, seed: int, duration_s: float | None = None, out
         realtime_factor=truth.t_s / wall if wall > 0 else math.nan,
         time_split_s={k: round(v, 3) for k, v in timers.s.items()}, interrupted=interrupted, crashed=crashed,
         optical_valid_frac=series.steps_valid / max(1, series.steps_total),
+        gyro_bias_true_deg_s=np.degrees(sensors.imu.gyro_bias_b_rad_s).tolist(),
+        gyro_bias_est_deg_s=np.degrees(est.buffer.gyro_bias_b_rad_s).tolist(),
+        sensor_errors=sensors.errors.to_dict(),
     )
     if out_dir is not None:
         from sim.report import write_report

@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from gsoe import quat
 from gsoe.attitude import AttitudeBuffer
 from gsoe.rotation import R_nb_from_euler
-from gsoe.stabilise import PatchSampler, VirtualNadirCamera, _interp_matrix, to_intensity
+from gsoe.stabilise import PatchSampler, VirtualNadirCamera, _interp_matrix
 from gsoe.types import AttitudeSample, ImuSample
 
 RATE_HZ = 300
@@ -51,15 +52,43 @@ def _fill(buf: AttitudeBuffer, gyro_bias: np.ndarray, att_noise_rad: float, rng:
             next_update += bias_update_every_s
 
 
+def _rot(q) -> Rotation:
+    w, x, y, z = q
+    return Rotation.from_quat([x, y, z, w])
+
+
+def test_quaternion_helpers_match_scipy():
+    rng = np.random.default_rng(5)
+    for _ in range(50):
+        a, b = Rotation.random(random_state=rng), Rotation.random(random_state=rng)
+        qa = quat.from_matrix(a.as_matrix())
+        qb = quat.from_matrix(b.as_matrix())
+        assert (_rot(quat.mul(qa, qb)).inv() * (a * b)).magnitude() < 1e-9
+        np.testing.assert_allclose(quat.to_matrix(qa), a.as_matrix(), atol=1e-12)
+        rv = rng.normal(0.0, 1.0, 3)
+        assert (_rot(quat.from_rotvec(*rv)).inv() * Rotation.from_rotvec(rv)).magnitude() < 1e-9
+        np.testing.assert_allclose(quat.to_rotvec(quat.from_rotvec(*rv)), Rotation.from_rotvec(rv).as_rotvec(),
+                                   atol=1e-9)
+        e = rng.uniform([-3, -1.5, -3], [3, 1.5, 3])
+        q = quat.from_euler321(*e)
+        assert (_rot(q).inv() * Rotation.from_euler("ZYX", e[::-1])).magnitude() < 1e-9
+        np.testing.assert_allclose(quat.to_euler321(q), e, atol=1e-9)
+        assert quat.angle(quat.mul(quat.conj(qa), qb)) == pytest.approx((a.inv() * b).magnitude(), abs=1e-9)
+        mid = quat.slerp(qa, qb, 0.3)
+        from scipy.spatial.transform import Slerp
+        ref = Slerp([0, 1], Rotation.concatenate([a, b]))([0.3])[0]
+        assert (_rot(mid).inv() * ref).magnitude() < 1e-9
+
+
 def test_attitude_interpolation_and_gyro_relative_rotation():
     buf = AttitudeBuffer(horizon_s=10.0, gyro_bias_tau_s=0.0)
     _fill(buf, np.zeros(3), 0.0, np.random.default_rng(0))
     t0, t1 = 1.2345, 1.9
     truth0 = Rotation.from_euler("ZYX", _truth(np.array([t0]))[0][::-1])
     truth1 = Rotation.from_euler("ZYX", _truth(np.array([t1]))[0][::-1])
-    est0 = buf.attitude_at(int(t0 * 1e6))
+    est0 = _rot(buf.attitude_at(int(t0 * 1e6)))
     assert (est0.inv() * truth0).magnitude() < np.deg2rad(0.01)
-    rel = buf.relative_rotation(int(t0 * 1e6), int(t1 * 1e6), use_gyro=True)
+    rel = _rot(buf.relative_rotation(int(t0 * 1e6), int(t1 * 1e6), use_gyro=True))
     assert (rel.inv() * (truth0.inv() * truth1)).magnitude() < np.deg2rad(0.02)
     assert buf.attitude_at(int(10e6)) is None  # outside the buffer: unknown, not a guess
 
@@ -73,8 +102,8 @@ def test_gyro_relative_rotation_beats_noisy_ahrs_and_bias_filter_converges():
     t0, t1 = 23.2, 23.5
     truth_rel = (Rotation.from_euler("ZYX", _truth(np.array([t0]))[0][::-1]).inv()
                  * Rotation.from_euler("ZYX", _truth(np.array([t1]))[0][::-1]))
-    err_ahrs = (buf.relative_rotation(int(t0 * 1e6), int(t1 * 1e6), use_gyro=False).inv() * truth_rel).magnitude()
-    err_gyro = (buf.relative_rotation(int(t0 * 1e6), int(t1 * 1e6), use_gyro=True).inv() * truth_rel).magnitude()
+    err_ahrs = (_rot(buf.relative_rotation(int(t0 * 1e6), int(t1 * 1e6), use_gyro=False)).inv() * truth_rel).magnitude()
+    err_gyro = (_rot(buf.relative_rotation(int(t0 * 1e6), int(t1 * 1e6), use_gyro=True)).inv() * truth_rel).magnitude()
     assert err_gyro < np.deg2rad(0.05)
     assert err_gyro < err_ahrs
 
@@ -120,13 +149,8 @@ def test_nadir_pixel_is_projection_of_down(camera):
     vcam = VirtualNadirCamera(camera, (121, 73), (60.0, 36.0), 19, 0.0, 8)
     for roll, pitch in ((0.3, 0.1), (-0.7, -0.3)):
         R_nb = Rotation.from_euler("ZYX", [1.0, pitch, roll])
-        mx, my, ok = vcam.base.sample_map(vcam.R_cn(R_nb), 1.0, 1.0 / vcam.focal_px)
-        down_c = vcam.R_cn(R_nb) @ np.array([0.0, 0.0, 1.0])
+        mx, my, ok = vcam.base.sample_map(vcam.R_cn(R_nb.as_matrix()), 1.0, 1.0 / vcam.focal_px)
+        down_c = vcam.R_cn(R_nb.as_matrix()) @ np.array([0.0, 0.0, 1.0])
         px, _ = camera.project(down_c[None])
         assert mx[36, 60] == pytest.approx(px[0, 0], abs=0.02)
         assert my[36, 60] == pytest.approx(px[0, 1], abs=0.02)
-
-
-def test_intensity_eq4():
-    bgr = np.array([[[10, 20, 30]]], dtype=np.uint8)
-    assert to_intensity(bgr)[0, 0] == pytest.approx(0.299 * 30 + 0.587 * 20 + 0.114 * 10, abs=1e-4)

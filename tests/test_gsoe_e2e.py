@@ -72,11 +72,11 @@ def test_stabilised_view_matches_level_view(gsoe_config, camera, renderer):
     pos = np.array([35.0, -20.0, -100.0])
     yaw0 = math.radians(30.0)
     level = Rotation.from_euler("ZYX", [yaw0, 0.0, 0.0])
-    ref = est.vcam.sample_base(renderer.render(pos, level.as_matrix()), level, yaw0)
+    ref = est.vcam.sample_base(renderer.render(pos, level.as_matrix()), level.as_matrix(), yaw0)
     assert ref.valid
     for roll, pitch, dyaw in ((45, 0, 0), (-45, 0, 0), (0, 20, 0), (0, -20, 0), (30, 10, 25), (-20, -15, -40)):
         R = Rotation.from_euler("ZYX", [yaw0 + math.radians(dyaw), math.radians(pitch), math.radians(roll)])
-        patch = est.vcam.sample_base(renderer.render(pos, R.as_matrix()), R, yaw0)
+        patch = est.vcam.sample_base(renderer.render(pos, R.as_matrix()), R.as_matrix(), yaw0)
         assert patch.valid
         ncc = cv2.matchTemplate(patch.image, ref.image, cv2.TM_CCOEFF_NORMED)[0, 0]
         assert ncc > 0.97, (roll, pitch, dyaw, ncc)
