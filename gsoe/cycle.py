@@ -31,7 +31,7 @@ from gsoe.config import GsoeConfig
 from gsoe.integrity import data_filter_fires
 from gsoe.matching import match_template
 from gsoe.quat import Quat
-from gsoe.stabilise import VirtualNadirCamera
+from gsoe.stabilise import Frame, VirtualNadirCamera
 from gsoe.types import AttitudeSample, GsoeStep, ImuSample, MatchQuality
 
 _NO_QUALITY = MatchQuality(psr=0.0, texture_std=0.0, ssd_per_px=math.nan, valid=False)
@@ -126,10 +126,15 @@ class GsoeEstimator:
         return self.buffer.push_imu(s)
 
     # ------------------------------------------------------------------------------------------------------
-    def process_frame(self, t_us: int, image: NDArray, height_agl_m: float = math.nan) -> list[GsoeStep]:
-        """Process one raw frame exposed at ``t_us``; returns 0-2 steps (a cycle's last step, a new base)."""
+    def process_frame(self, t_us: int, image: Frame, height_agl_m: float = math.nan) -> list[GsoeStep]:
+        """Process one raw frame exposed at ``t_us``; returns 0-2 steps (a cycle's last step, a new base).
+
+        ``image`` is the raw frame (grey or BGR, the camera's size) or a callable giving it region by region
+        (:data:`gsoe.stabilise.Frame`).  A frame of the wrong size or type ends the cycle and returns nothing.
+        """
         w, h = self.camera.size_px
-        if image is None or image.ndim not in (2, 3) or image.shape[0] != h or image.shape[1] != w:
+        if not callable(image) and (image is None or not isinstance(image, np.ndarray) or image.ndim not in (2, 3)
+                                    or image.shape[0] != h or image.shape[1] != w or image.size == 0):
             self._cycle = None
             return []
         att = self.buffer.attitude_at(t_us)
@@ -180,7 +185,7 @@ class GsoeEstimator:
         roll, pitch, _ = quat.to_euler321(att)
         return abs(roll) <= self._roll_lim and abs(pitch) <= self._pitch_lim
 
-    def _restart(self, t_us: int, image: NDArray, att: Quat, height_agl_m: float, old: _Cycle) -> list[GsoeStep]:
+    def _restart(self, t_us: int, image: Frame, att: Quat, height_agl_m: float, old: _Cycle) -> list[GsoeStep]:
         if old.n_valid > 0:
             self.buffer.update_bias(old.base_t_us, t_us)
         self._cycle = None
@@ -196,7 +201,7 @@ class GsoeEstimator:
             new.carried_step_xy = (right2, -fwd2)
         return out
 
-    def _start(self, t_us: int, image: NDArray, att: Quat, height_agl_m: float) -> list[GsoeStep]:
+    def _start(self, t_us: int, image: Frame, att: Quat, height_agl_m: float) -> list[GsoeStep]:
         yaw0 = quat.to_euler321(att)[2]
         patch = self.vcam.sample_base(image, quat.to_matrix(att), yaw0)
         if not patch.valid:

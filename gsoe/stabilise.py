@@ -18,6 +18,7 @@ The paper's own cropping point (eq. 2-3, roll and pitch only) is :func:`gsoe.equ
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -45,6 +46,11 @@ def _interp_matrix(n_out: int, step: int) -> tuple[NDArray[np.float64], NDArray[
     A[np.arange(n_out), j] = 1.0 - w
     A[np.arange(n_out), j + 1] = w
     return nodes, A
+
+
+# A raw frame: the image itself, or a callable that returns it with at least the pixels of a region of interest
+# ``(x0, y0, x1, y1)`` (end exclusive) filled in.  A simulator renders only what the estimator reads that way.
+Frame = NDArray | Callable[[tuple[int, int, int, int]], NDArray]
 
 
 @dataclass(frozen=True)
@@ -96,10 +102,15 @@ class PatchSampler:
         map_y = (self._A_v @ gy @ self._A_uT).astype(np.float32)
         return map_x, map_y, True
 
-    def sample(self, raw: NDArray, R_cn: NDArray[np.float64], base_yaw_rad: float, scale: float) -> Patch:
+    def sample(self, raw: Frame, R_cn: NDArray[np.float64], base_yaw_rad: float, scale: float) -> Patch:
         map_x, map_y, ok = self.sample_map(R_cn, base_yaw_rad, scale)
         if not ok:
             return Patch(np.zeros((self.height_px, self.width_px), np.float32), False)
+        if callable(raw):
+            w, h = self.camera.size_px
+            roi = (max(0, int(map_x.min()) - 1), max(0, int(map_y.min()) - 1),
+                   min(w, int(map_x.max()) + 3), min(h, int(map_y.max()) + 3))
+            raw = raw(roi)
         patch = cv2.remap(raw, map_x, map_y, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         return Patch(to_intensity(patch), True)
 
@@ -119,10 +130,10 @@ class VirtualNadirCamera:
         """NED-to-camera rotation for a body attitude ``R_nb`` (3x3)."""
         return self.camera.R_bc.T @ R_nb.T
 
-    def sample_base(self, raw: NDArray, R_nb: NDArray[np.float64], base_yaw_rad: float) -> Patch:
+    def sample_base(self, raw: Frame, R_nb: NDArray[np.float64], base_yaw_rad: float) -> Patch:
         return self.base.sample(raw, self.R_cn(R_nb), base_yaw_rad, 1.0 / self.focal_px)
 
-    def sample_template(self, raw: NDArray, R_nb: NDArray[np.float64], base_yaw_rad: float,
+    def sample_template(self, raw: Frame, R_nb: NDArray[np.float64], base_yaw_rad: float,
                         height_ratio: float) -> Patch:
         """Template at the current nadir; ``height_ratio = h_base / h_now`` rescales it to the base image's GSD."""
         return self.template.sample(raw, self.R_cn(R_nb), base_yaw_rad, height_ratio / self.focal_px)

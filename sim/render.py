@@ -34,6 +34,9 @@ from sim.textures import GroundWorld
 
 # Sub-renders averaged across the exposure for motion blur.
 MOTION_BLUR_SUBSAMPLES = 5
+# Blur shorter than this (image motion during the exposure, px at the image centre) is not drawn: one sub-render per
+# this many pixels of motion, up to ``blur_subsamples``.
+BLUR_PX_PER_SUBSAMPLE = 0.5
 # Intensity (DN, 0-255) and colour (BGR) of rays that miss the ground.
 SKY_INTENSITY_DN = 200.0
 SKY_COLOR_BGR = (235.0, 206.0, 135.0)
@@ -203,7 +206,12 @@ class CameraRenderer:
         rates = _vec3(rates_b_rad_s, "rates_b_rad_s")
         if exposure == 0.0 or (not vel.any() and not rates.any()):
             return self._render_pose(pos, R, box)
-        n = self.blur_subsamples
+        # image motion at the centre during the exposure: translation over the height plus rotation
+        f_px = self.camera.focal_px
+        blur_px = exposure * f_px * (float(np.linalg.norm(vel)) / max(-pos[2], 1e-3) + float(np.linalg.norm(rates)))
+        n = min(self.blur_subsamples, int(np.ceil(blur_px / BLUR_PX_PER_SUBSAMPLE)))
+        if n <= 1:
+            return self._render_pose(pos, R, box)
         acc: NDArray[np.float32] | None = None
         for dt in exposure * ((np.arange(n) + 0.5) / n - 0.5):
             p = pos + vel * dt
