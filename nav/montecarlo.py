@@ -29,7 +29,8 @@ fields at once:
 ``mc.camera_mount_{roll,pitch,yaw}_error_deg``
     camera calibration error: the optical estimator is given a camera (``camera.gsoe_overrides.camera``) whose
     focal length, principal point and mounting differ from the nominal camera of ``config/default.toml`` by the
-    drawn amounts.  This is a calibration error only as long as the simulator renders with the nominal camera.
+    drawn amounts.  This is a calibration error only as long as the simulator renders with the nominal camera
+    (a truth-side camera error in the scenario would make it independent of that).
 
 Test hooks (documented, off by default): ``fail_runs = [i, ...]`` makes those runs raise :class:`InjectedFailure`
 after their parameters are drawn; ``crash_runs = [i, ...]`` makes their worker process exit abruptly (as a
@@ -90,7 +91,12 @@ MAX_RUNS = 1_000_000
 # Lists longer than this in a run's metrics are not kept in its record (100 runs must not fill the disk).
 MAX_METRIC_LIST_LEN = 20_000
 # Metric keys whose values depend on the machine, not on the flight; left out of bit-for-bit comparisons.
-TIMING_KEY_PARTS: tuple[str, ...] = ("wall", "realtime", "elapsed", "cpu_s", "rss", "_us_per_", "per_frame_us")
+TIMING_KEY_PARTS: tuple[str, ...] = ("wall", "realtime", "elapsed", "cpu_s", "rss", "_us_per_", "per_frame_us",
+                                     "time_split")
+# Metric flags with which run_flight reports that it stopped early; such a run is recorded as failed (its metrics
+# are kept in the record).
+FLIGHT_FAILURE_FLAGS: tuple[str, ...] = ("crashed",)
+INTERRUPTED_FLAG = "interrupted"  # Ctrl-C inside run_flight: the run is not recorded
 # Metrics where larger is better (their worst run is the smallest); ``baseline_`` variants included.
 HIGHER_IS_BETTER: frozenset[str] = frozenset({"heading_coverage", "nees_in_bounds_frac", "realtime_factor",
                                               "valid_frac", "frames"})
@@ -104,6 +110,7 @@ WIND_DIR_MIN_WIND_M_S = 3.0
 MIN_GROUP_RUNS = 2
 SIGNIFICANCE_P = 0.05
 WORST_FRACTION = 0.1  # "worst decile" fallback when all or no runs miss a goal
+MAX_CATEGORIES_IN_FINDING = 3
 # Issue 6 throughput goal: the 100 x 600 s campaign within 15 minutes on the reference (2-core) machine.
 THROUGHPUT_GOAL_SIM_S = 100 * 600.0
 THROUGHPUT_GOAL_WALL_S = 15 * 60.0
@@ -126,6 +133,10 @@ _MOUNT_KEYS = ("mc.camera_mount_roll_error_deg", "mc.camera_mount_pitch_error_de
 
 class InjectedFailure(RuntimeError):
     """Raised on purpose for the runs listed in a spec's ``fail_runs`` (test hook)."""
+
+
+class FlightStopped(RuntimeError):
+    """The flight returned metrics but says it did not fly to the end (a flag of FLIGHT_FAILURE_FLAGS)."""
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -169,14 +180,19 @@ class Dist:
                 require(len(w) == len(vals), "weights", f"must have one weight per value ({len(vals)}), got {len(w)}")
                 require(all(x >= 0.0 for x in w) and sum(w) > 0.0, "weights", "must be >= 0 with a positive sum")
 
+    def _f(self, name: str) -> float:
+        v = getattr(self, name)
+        assert v is not None, name  # guaranteed by __post_init__ for the fields a distribution uses
+        return float(v)
+
     def draw(self, rng: np.random.Generator) -> Any:
         if self.dist == "uniform":
-            return float(rng.uniform(self.low, self.high))
+            return float(rng.uniform(self._f("low"), self._f("high")))
         if self.dist == "loguniform":
-            return float(np.exp(rng.uniform(math.log(float(self.low)), math.log(float(self.high)))))
+            return float(np.exp(rng.uniform(math.log(self._f("low")), math.log(self._f("high")))))
         if self.dist == "normal":
-            mu, sd = float(self.mean), float(self.std)  # type: ignore[arg-type]
-            a, b = (float(self.low) - mu) / sd, (float(self.high) - mu) / sd  # type: ignore[arg-type]
+            mu, sd = self._f("mean"), self._f("std")
+            a, b = (self._f("low") - mu) / sd, (self._f("high") - mu) / sd
             return float(sps.truncnorm.rvs(a, b, loc=mu, scale=sd, random_state=rng))
         if self.dist == "choice":
             vals = self.values or ()
@@ -187,7 +203,7 @@ class Dist:
     def extremes(self) -> list[Any]:
         """The values whose validity implies that of every draw (bounds of a range, every choice)."""
         if self.dist in ("uniform", "loguniform", "normal"):
-            return [float(self.low), float(self.high)]  # type: ignore[arg-type]
+            return [self._f("low"), self._f("high")]
         if self.dist == "choice":
             return list(self.values or ())
         return [self.value]
@@ -319,7 +335,10 @@ def _resolve_scenario(name: str, spec_dir: Path | None) -> Path:
 def _spec_from_file(f: _SpecFile, base: Scenario, camera: CameraConfig, where: str, source: str) -> MonteCarloSpec:
     params: dict[str, Dist] = {}
     for key, table in f.params.items():
-        params[str(key)] = build(Dist, table, f'params."{key}"')
+        try:
+            params[str(key)] = build(Dist, table, f'params."{key}"')
+        except ConfigError as e:
+            raise ConfigError(f"{where}: {e.field_path}", str(e).split(": ", 1)[1]) from None
     spec = MonteCarloSpec(
         name=f.name, description=f.description, base=base, camera=camera, base_seed=f.base_seed, n_runs=f.n_runs,
         duration_s=float(f.duration_s or base.duration_s), runner=f.runner, fixed=copy.deepcopy(dict(f.fixed)),
@@ -628,7 +647,13 @@ def run_one(spec: MonteCarloSpec | str | Path, base_seed: int, i: int, duration_
         result = _load_runner(sp.runner)(scn, seed=rec.run_seed, duration_s=dur, out_dir=out_dir, progress=False)
         if not isinstance(result, Mapping):
             raise TypeError(f"{sp.runner} returned {type(result).__name__}, expected a mapping of metrics")
+        if result.get(INTERRUPTED_FLAG):
+            # Not a result: no record, so that --resume flies the run again.
+            raise KeyboardInterrupt(f"run {i} was interrupted")
         rec.metrics, rec.dropped_keys = _sanitize_metrics(result)
+        for flag in FLIGHT_FAILURE_FLAGS:
+            if result.get(flag):
+                raise FlightStopped(f"the flight reports {flag}: {result[flag]}")
         rec.status = "ok"
     except Exception as e:  # noqa: BLE001 - a failing run is recorded, never fatal to the campaign
         rec.error = f"{type(e).__name__}: {e}"
@@ -771,6 +796,15 @@ def _pool(workers: int) -> cf.ProcessPoolExecutor:
 def _run_local(spec: MonteCarloSpec, todo: Sequence[int], workers: int, out_dir: Path,
                emit: Callable[[RunRecord], None]) -> None:
     runs = Path(out_dir) / RUNS_DIR
+    try:
+        _run_local_pools(spec, todo, workers, runs, emit)
+    finally:
+        for m in runs.glob(_STARTED_MARKER_GLOB):
+            m.unlink(missing_ok=True)
+
+
+def _run_local_pools(spec: MonteCarloSpec, todo: Sequence[int], workers: int, runs: Path,
+                     emit: Callable[[RunRecord], None]) -> None:
     pending = list(todo)
     while pending:
         markers = {i: runs / _STARTED_MARKER_FMT.format(i) for i in pending}
@@ -813,8 +847,6 @@ def _run_local(spec: MonteCarloSpec, todo: Sequence[int], workers: int, out_dir:
                                          "(crash in native code, out of memory, or os._exit)", repr(e))
             emit(rec)
             pending.remove(i)
-    for m in runs.glob(_STARTED_MARKER_GLOB):
-        m.unlink(missing_ok=True)
 
 
 def _run_dask(spec: MonteCarloSpec, todo: Sequence[int], scheduler: str, emit: Callable[[RunRecord], None]) -> int:
@@ -831,6 +863,9 @@ def _run_dask(spec: MonteCarloSpec, todo: Sequence[int], scheduler: str, emit: C
                 i = index_of[fut.key]
                 try:
                     rec = fut.result()
+                except KeyboardInterrupt:
+                    log.warning("run %d was interrupted on its worker; not recorded (--resume flies it again)", i)
+                    continue
                 except Exception as e:  # noqa: BLE001 - e.g. KilledWorker: the run killed its worker
                     rec = _failed_record(spec, i, spec.duration_s, f"{type(e).__name__}: {e}",
                                          "".join(traceback.format_exception(e)))
@@ -865,14 +900,16 @@ def _check_campaign_folder(out_dir: Path, spec: MonteCarloSpec, resume: bool) ->
 
 def run_campaign(spec: MonteCarloSpec, out_dir: str | Path, *, indices: Iterable[int] | None = None,
                  scheduler: str | None = None, workers: int | None = None, resume: bool = False,
-                 progress: bool = True, report: bool = True) -> CampaignResult:
+                 retry_failed: bool = False, progress: bool = True, report: bool = True) -> CampaignResult:
     """Fly the runs of ``spec`` (all ``n_runs``, or ``indices``) into ``out_dir``, then write ``summary.json`` and
     (``report``) ``report.html``.
 
     ``scheduler``: address of a Dask scheduler (``tcp://HOST:PORT``); otherwise a local process pool of
     ``workers`` processes (default all cores; 0 flies the runs in this process, for debugging).  ``resume``: skip
-    runs whose record exists (the folder must hold a campaign of the same spec, seed and duration).
+    runs whose record exists (the folder must hold a campaign of the same spec, seed and duration);
+    ``retry_failed`` (with ``resume``): fly the runs recorded as failed again.
     """
+    require(resume or not retry_failed, "retry_failed", "only makes sense with resume")
     out = Path(out_dir)
     _check_campaign_folder(out, spec, resume)
     (out / RUNS_DIR).mkdir(parents=True, exist_ok=True)
@@ -880,6 +917,8 @@ def run_campaign(spec: MonteCarloSpec, out_dir: str | Path, *, indices: Iterable
     for i in wanted:
         require(0 <= i < spec.n_runs, "indices", f"run index {i} outside [0, {spec.n_runs})")
     have = finished_indices(out) if resume else set()
+    if retry_failed:
+        have -= {r.index for r in read_records(out) if r.status != "ok"}
     todo = [i for i in wanted if i not in have]
     skipped = [i for i in wanted if i in have]
     camp = read_campaign(out) or {"format": CAMPAIGN_FORMAT, "sessions": []}
@@ -893,6 +932,7 @@ def run_campaign(spec: MonteCarloSpec, out_dir: str | Path, *, indices: Iterable
              spec.duration_s, backend)
     flown: list[int] = []
     failed: list[int] = []
+    sim_s_flown = [0.0]
     t0 = time.perf_counter()
     started = datetime.now(UTC).isoformat(timespec="seconds")
     bar = _progress_bar(len(todo), progress)
@@ -902,6 +942,9 @@ def run_campaign(spec: MonteCarloSpec, out_dir: str | Path, *, indices: Iterable
         flown.append(rec.index)
         if rec.status != "ok":
             failed.append(rec.index)
+        else:
+            v = metric_value(rec, "sim_s")
+            sim_s_flown[0] += v if math.isfinite(v) else rec.duration_s
         bar.update(1)
         bar.set_postfix(failed=len(failed), refresh=False)
 
@@ -917,7 +960,8 @@ def run_campaign(spec: MonteCarloSpec, out_dir: str | Path, *, indices: Iterable
         bar.close()
         wall = time.perf_counter() - t0
         camp["sessions"].append({"started_utc": started, "wall_s": wall, "flown": len(flown),
-                                 "failed": len(failed), "backend": backend, "workers": n_workers})
+                                 "failed": len(failed), "sim_s": sim_s_flown[0], "backend": backend,
+                                 "workers": n_workers})
         write_json(out / CAMPAIGN_FILE, camp)
     write_summary(out, spec)
     if report:
@@ -1113,11 +1157,12 @@ def parameter_effects(records: Sequence[RunRecord], bad: Sequence[bool]) -> list
             per_cat = {n: {"n": int(table[:, j].sum()), "bad_frac": float(table[0, j] / table[:, j].sum())}
                        for j, n in enumerate(names)}
             overall = n_bad / (n_bad + n_good)
-            worst = max(per_cat, key=lambda n: per_cat[n]["bad_frac"])
+            ranked = sorted(per_cat, key=lambda n: -per_cat[n]["bad_frac"])
+            above = [n for n in ranked if per_cat[n]["bad_frac"] > overall][:MAX_CATEGORIES_IN_FINDING] or ranked[:1]
+            listed = ", ".join(f"{n} {per_cat[n]['bad_frac']:.0%} of {per_cat[n]['n']}" for n in above)
             out.append({"param": key, "kind": "categorical", "p_value": p, "categories": per_cat,
                         "shared": bool(p < SIGNIFICANCE_P),
-                        "finding": f"{key} = {worst}: {per_cat[worst]['bad_frac']:.0%} of its "
-                                   f"{per_cat[worst]['n']} runs are bad (all runs: {overall:.0%})"})
+                        "finding": f"{key}: bad runs are {listed} (all runs: {overall:.0%})"})
     out.sort(key=lambda d: d["p_value"])
     return out
 
@@ -1142,7 +1187,8 @@ def _cause_analysis(records: Sequence[RunRecord], goals: Sequence[Goal], results
             bad = [bool(s >= cut) for s in score]
             how = f"worst {WORST_FRACTION:.0%} of runs by {g.metric} vs the rest"
         out[g.name] = {"comparison": how, "n_bad": int(sum(bad)), "n_good": int(len(bad) - sum(bad)),
-                       "effects": parameter_effects(elig, bad)}
+                       "bad_runs": [r.index for r, b in zip(elig, bad, strict=True) if b],
+                       "eligible_runs": [r.index for r in elig], "effects": parameter_effects(elig, bad)}
     return out
 
 
@@ -1192,13 +1238,14 @@ def _nees_summary(records: Sequence[RunRecord]) -> dict[str, Any]:
 
 
 def _heading_table(records: Sequence[RunRecord], key: str = "drift_err_by_heading_deg") -> dict[str, Any] | None:
-    rows = [r.metrics.get(key) for r in records if r.status == "ok" and isinstance(r.metrics.get(key), list)]
+    rows: list[list[Any]] = [r.metrics[key] for r in records if r.status == "ok" and isinstance(r.metrics.get(key),
+                                                                                                 list)]
     if not rows:
         return None
     n = max(len(x) for x in rows)
     arr = np.full((len(rows), n), np.nan)
     for j, row in enumerate(rows):
-        if len(row) == n:
+        if len(row) == n and all(v is None or (isinstance(v, int | float) and not isinstance(v, bool)) for v in row):
             arr[j] = [math.nan if v is None else float(v) for v in row]
     width = 360.0 / n
     with np.errstate(all="ignore"), _quiet_nan_warnings():
@@ -1243,19 +1290,19 @@ def summarize(records: Sequence[RunRecord], spec: MonteCarloSpec, campaign: Mapp
                    "ekf_better_frac": float(np.mean(better[both])) if both.any() else math.nan}
     results = goal_results(recs, spec.goals)
     # Throughput over every session of the campaign (resumes included).
-    sessions = list((campaign or {}).get("sessions", []))
+    # Sessions that flew nothing (re-aggregation) do not count.
+    sessions = [s for s in (campaign or {}).get("sessions", []) if s.get("flown", 0) > 0]
     wall_total = float(sum(s.get("wall_s", 0.0) for s in sessions))
     flown_total = int(sum(s.get("flown", 0) for s in sessions))
-    sim_s = [metric_value(r, "sim_s") for r in ok]
-    sim_total = float(sum(v if math.isfinite(v) else r.duration_s for v, r in zip(sim_s, ok, strict=True)))
-    sim_per_wall = sim_total / wall_total if wall_total > 0 and flown_total >= len(ok) else math.nan
+    sim_total = float(sum(s.get("sim_s", 0.0) for s in sessions))
+    sim_per_wall = sim_total / wall_total if wall_total > 0 else math.nan
     by_worker: dict[str, float] = {}
     for r in recs:
         if r.worker and math.isfinite(r.peak_rss_mb):
             by_worker[r.worker] = max(by_worker.get(r.worker, 0.0), r.peak_rss_mb)
     projected = THROUGHPUT_GOAL_SIM_S / sim_per_wall if sim_per_wall and math.isfinite(sim_per_wall) else math.nan
     throughput = {"sessions": sessions, "campaign_wall_s": wall_total, "runs_flown_in_sessions": flown_total,
-                  "sim_s_total": sim_total, "sim_s_per_wall_s": sim_per_wall,
+                  "sim_s_flown_ok": sim_total, "sim_s_per_wall_s": sim_per_wall,
                   "runs_per_hour": (flown_total / wall_total * 3600.0) if wall_total > 0 else math.nan,
                   "run_wall_s_mean": metrics["wall_s"]["mean"],
                   "projected_wall_s_100x600": projected,

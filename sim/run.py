@@ -169,7 +169,10 @@ def run_flight(scn: Scenario, *, seed: int, duration_s: float | None = None, out
     base_cfg, raw = load_gsoe_config(config_path)
     gcfg = gsoe_config_for(scn, base_cfg)
     ekf_cfg = ekf_config_from_raw(raw.get("ekf", {}))
+    # The physical camera is the configuration's camera file; the estimator uses the scenario's view of it
+    # (``camera.gsoe_overrides.camera``), so a Monte Carlo run can give the estimator a calibration error.
     camera = CameraModel.from_config(gcfg.camera)
+    true_camera = CameraModel.from_config(base_cfg.camera)
     duration = scn.duration_s if duration_s is None else float(duration_s)
     if not (duration > 0 and math.isfinite(duration)):
         raise ValueError(f"duration_s must be > 0, got {duration_s!r}")
@@ -177,7 +180,7 @@ def run_flight(scn: Scenario, *, seed: int, duration_s: float | None = None, out
     rng_dyn, rng_sens, rng_cam = rng.spawn(3)
 
     world = GroundWorld.from_name(scn.terrain.texture, seed=seed)
-    renderer = CameraRenderer(camera, world)
+    renderer = CameraRenderer(true_camera, world)
     dyn = FlightDynamics(DynamicsParams(dt_s=scn.dt_s), wind_params(scn), rng_dyn)
     st = scn.mission.start
     trim = dyn.trim(st.north_m, st.east_m, st.height_m, st.airspeed_m_s, st.yaw_rad)
@@ -502,6 +505,20 @@ def compute_metrics(series: _Series, outages: list[tuple[float, float]]) -> dict
         nees = E["nees"][np.isfinite(E["nees"])]
         out["nees_in_bounds_frac"] = float(np.mean((nees >= lo) & (nees <= hi))) if nees.size else math.nan
         out["nees_mean"] = float(np.mean(nees)) if nees.size else math.nan
+        out["nees_dof"] = NEES_DOF
+        # NEES at 1 Hz (for run-averaged consistency plots) and the drift error per 10-deg heading bin
+        fin = np.isfinite(E["nees"])
+        if fin.any():
+            grid = np.arange(math.ceil(E["t_s"][fin][0]), math.floor(E["t_s"][fin][-1]) + 1.0)
+            out["nees_t_s"] = grid.tolist()
+            out["nees_series"] = np.interp(grid, E["t_s"][fin], E["nees"][fin]).round(4).tolist()
+        ok = (E["valid"] > 0.5) & np.isfinite(E["drift"])
+        if ok.any():
+            err = np.degrees(np.asarray(angle_diff(E["drift"][ok], drift_truth_at(E["t_s"][ok]))))
+            centres, med = M.median_per_heading_deg(E["heading"][ok], np.radians(np.abs(err)), bin_deg=10.0)
+            out["drift_err_by_heading_deg"] = {"heading_deg": centres.tolist(),
+                                               "abs_err_median_deg": [None if not np.isfinite(v) else round(v, 4)
+                                                                      for v in med]}
         out.update(_outage_metrics(E, T, outages))
     return out
 
