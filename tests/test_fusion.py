@@ -26,9 +26,9 @@ from gsoe.config import ConfigError
 from gsoe.rotation import R_nb_from_euler
 from gsoe.types import AttitudeSample, GsoeStep, ImuSample, MatchQuality
 from nav.configfile import load_gsoe_config
-from tests.fusion_truth import TruthConfig, make_flight, run_ekf
+from tests.fusion_truth import TruthConfig, filter_config, make_flight, run_ekf
 
-CFG0 = dataclasses.replace(EkfConfig(), fusion_delay_s=0.0)
+CFG0 = filter_config()          # the defaults, with the test truth's optical error model and no fusion delay
 G_DOWN_SPECIFIC_FORCE = np.array([0.0, 0.0, -9.80665])   # level, unaccelerated: the accelerometer reads -g on z
 
 
@@ -41,6 +41,7 @@ def _random_state(rng: np.random.Generator) -> np.ndarray:
     x[S.wind_ne] = rng.uniform(-8, 8, 2)
     x[S.accel_bias_b] = rng.normal(0, 0.05, 3)
     x[S.yaw_bias] = rng.normal(0, 0.05)
+    x[S.opt_rot] = rng.normal(0, 0.05)
     x[S.baro_bias] = rng.normal(0, 3)
     x[S.terrain_h] = rng.normal(0, 5)
     x[S.tas_scale] = rng.normal(0, 0.03)
@@ -116,6 +117,62 @@ def test_measurement_jacobians_match_finite_differences(seed):
 
 
 @pytest.mark.parametrize("seed", range(3))
+def test_anchor_reconstruction_inverts_the_optical_model_with_matching_jacobians(seed):
+    rng = np.random.default_rng(seed)
+    x = _random_state(rng)
+    m = OpticalDisplacement(focal_px=351.86, base_yaw_rad=rng.uniform(-3, 3))
+    z = rng.uniform(-30, 30, 2)
+    base, J, Kz = m.base_from_step(x, z)
+    xb = x.copy()
+    xb[S.base_pos_ned] = base
+    np.testing.assert_allclose(m.predict(xb), z, atol=1e-9)         # the reconstructed base reproduces the step
+    eps = 1e-6 * np.maximum(1.0, np.abs(x))
+    np.testing.assert_allclose(J, approx_fprime(x, lambda xx: m.base_from_step(xx, z)[0], eps), rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(Kz, approx_fprime(z, lambda zz: m.base_from_step(x, zz)[0], 1e-6), rtol=1e-5,
+                               atol=1e-7)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_wind_reset_from_airspeed_jacobians_match_finite_differences(seed):
+    rng = np.random.default_rng(seed)
+    x = _random_state(rng)
+    yaw, tas = rng.uniform(-3, 3), rng.uniform(15, 30)
+    w, J, d_tas, d_beta = TrueAirspeed.wind_from_airspeed(x, tas, yaw)
+    eps = 1e-6 * np.maximum(1.0, np.abs(x))
+    np.testing.assert_allclose(J, approx_fprime(x, lambda xx: TrueAirspeed.wind_from_airspeed(xx, tas, yaw)[0], eps),
+                               rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(d_tas, approx_fprime(np.array([tas]), lambda t: TrueAirspeed.wind_from_airspeed(
+        x, float(t[0]), yaw)[0], 1e-6)[:, 0], rtol=1e-5, atol=1e-7)
+    # consistency with the airspeed model: the reset wind reproduces the measured airspeed
+    xw = x.copy()
+    xw[S.wind_ne] = w
+    assert TrueAirspeed().predict(xw)[0] == pytest.approx(tas, rel=1e-9)
+    # and the sideslip derivative is the perpendicular direction scaled by the horizontal airspeed
+    assert abs(d_beta @ (x[S.vel_ne] - w)) < 1e-9
+
+
+def test_wind_is_reset_from_the_first_airspeed_sample_when_not_given():
+    """A strong wind (18 m/s, 3.6 initial sigmas) is found at once from the wind triangle, not explained away by the
+    airspeed scale: heading east at 20 m/s airspeed with a ground velocity of 2 m/s east means (ground = air + wind)
+    air moving west at 18 m/s.  Its sigma across the heading combines the ground-velocity, heading and sideslip
+    uncertainties."""
+    ekf = NavEkf(CFG0, t_us=0, pos_ned_m=[0.0, 0.0, -100.0], vel_ned_m_s=[0.0, 2.0, 0.0])
+    t = 0
+    for k in range(1, 21):
+        t = k * 5000
+        ekf.predict(ImuSample(t, np.zeros(3), G_DOWN_SPECIFIC_FORCE.copy()), AttitudeSample(t, 0.0, 0.0, math.pi / 2))
+    p_vn, p_yaw = ekf.P[S.vel_ne.start, S.vel_ne.start], ekf.P[S.yaw_bias.start, S.yaw_bias.start]
+    ekf.fuse_airspeed(t, 20.0)
+    st = ekf.status()["airspeed"]
+    assert st.reason == ekf_mod.REASON_WIND_RESET and not st.rejected
+    est = ekf.estimate()
+    np.testing.assert_allclose(est.wind_ne_m_s, [0.0, -18.0], atol=1e-6)
+    expect = math.sqrt(p_vn + 20.0**2 * (p_yaw + CFG0.sideslip_sigma_rad**2))
+    assert est.wind_ne_sigma_m_s[0] == pytest.approx(expect, rel=1e-6)
+    assert est.tas_scale == 0.0
+
+
+@pytest.mark.parametrize("seed", range(3))
 def test_process_jacobian_matches_finite_differences(seed):
     rng = np.random.default_rng(seed)
     x = _random_state(rng)
@@ -131,8 +188,9 @@ def test_process_jacobian_matches_finite_differences(seed):
 def test_ideal_imu_dead_reckoning_follows_truth():
     """No aiding at all: an ideal IMU and AHRS (at the IMU rate) integrated through turns and climbs stay on the
     true trajectory (gravity sign, body-to-NED rotation, zero-order hold of the specific force)."""
-    ideal = TruthConfig(duration_s=30.0, ahrs_div=3, accel_noise_m_s2=0.0, accel_bias_std_m_s2=0.0, ahrs_noise_deg=0.0,
-                        ahrs_rp_bias_std_deg=0.0, ahrs_yaw_bias_deg=0.0, segments=((5.0, 0.0), (20.0, 12.0)))
+    ideal = TruthConfig(duration_s=30.0, imu_div=3, ahrs_div=3, accel_noise_m_s2=0.0, accel_bias_std_m_s2=0.0,
+                        ahrs_noise_deg=0.0, ahrs_rp_bias_std_deg=0.0, ahrs_yaw_bias_deg=0.0,
+                        segments=((5.0, 0.0), (20.0, 12.0)))
     fl = make_flight(ideal)
     ekf = NavEkf(CFG0, t_us=0, pos_ned_m=fl.pos[0], vel_ned_m_s=fl.vel[0])
     att = None
@@ -267,13 +325,13 @@ def test_delayed_horizon_fuses_late_camera_and_airspeed_at_their_own_time():
     """Camera steps delivered 70 ms and airspeed 30 ms after their stamps (behind newer IMU samples), with a 0.1 s
     fusion delay, give the same filter as the same samples fed in time order."""
     fl = _short_flight()
-    ordered = run_ekf(fl, dataclasses.replace(EkfConfig(), fusion_delay_s=0.1))
+    ordered = run_ekf(fl, dataclasses.replace(CFG0, fusion_delay_s=0.1))
     late = {"optical": 70_000, "tas": 30_000}
     arrivals = sorted(fl.events, key=lambda e: (e[0] + late.get(e[2], 0), e[1]))
     fl_late = dataclasses.replace(fl, events=arrivals)
-    delayed = run_ekf(fl_late, dataclasses.replace(EkfConfig(), fusion_delay_s=0.1))
+    delayed = run_ekf(fl_late, dataclasses.replace(CFG0, fusion_delay_s=0.1))
     assert delayed.statuses[-1]["optical"].n_fused == ordered.statuses[-1]["optical"].n_fused > 400
-    assert delayed.statuses[-1]["optical"].n_rejected == 0
+    assert delayed.statuses[-1]["optical"].n_rejected == ordered.statuses[-1]["optical"].n_rejected <= 3
     np.testing.assert_allclose(delayed.ekf.x, ordered.ekf.x, atol=1e-6)
     # without the delay the same late samples are refused (late) or anchored, never fused out of order
     zero = run_ekf(fl_late, CFG0)
@@ -284,16 +342,41 @@ def test_delayed_horizon_fuses_late_camera_and_airspeed_at_their_own_time():
 
 def test_missed_base_snapshot_anchors_the_cycle_on_its_first_step():
     """The caller never pushes the cycles' base steps: when a cycle's first step arrives its base time is already
-    behind the filter, so that step becomes the anchor and the later steps are fused as differences to it."""
+    behind the filter, so that step anchors the cycle (the base position is reconstructed from it) and the later
+    steps are fused as usual.  Costs little against true clones on the same data."""
     fl = _short_flight()
     no_base = lambda ev: not (ev[2] == "optical" and ev[3].step == 0)  # noqa: E731
     anchored = run_ekf(fl, CFG0, gnss_until_s=5.0, event_filter=no_base)
-    reasons = {v.reason for v in anchored.step_status.values()}
-    assert ekf_mod.REASON_ANCHORED in reasons
+    cloned = run_ekf(fl, CFG0, gnss_until_s=5.0)
+    reasons = [v.reason for v in anchored.step_status.values()]
+    assert reasons.count(ekf_mod.REASON_ANCHORED) >= 50           # one per cycle
     st = anchored.statuses[-1]["optical"]
-    assert st.n_fused > 300 and st.n_rejected == 0
-    assert np.linalg.norm(anchored.pos_err[-1]) < 2.0
-    assert np.abs(anchored.vel_err[-20:]).max() < 0.5
+    assert st.n_fused > 0.85 * cloned.statuses[-1]["optical"].n_fused and st.n_rejected <= 3
+    e_anchor = np.linalg.norm(anchored.pos_err[-1])
+    e_clone = np.linalg.norm(cloned.pos_err[-1])
+    assert e_anchor < 2.0 * e_clone + 0.5
+    v_anchor, v_clone = (float(np.sqrt(np.mean(r.vel_err[r.t_s > 5.0] ** 2))) for r in (anchored, cloned))
+    assert v_anchor < 1.5 * v_clone + 0.05
+
+
+def test_correlated_gnss_position_error_is_not_averaged_as_white():
+    """Fixes 0.2 s apart with a 30 s error correlation time: the second fix is fused with its variance times
+    2 tau / dt = 300 (the information rate of a Gauss-Markov error), the first one with the plain variance."""
+    cfg = dataclasses.replace(CFG0, gnss_pos_corr_time_s=30.0)
+    ekf = _flying_ekf(cfg)
+    r = cfg.gnss_pos_ne_sigma_m**2
+    p_before = ekf.P[0, 0]
+    ekf.fuse_gnss(100_000, [2.0, 0.0, -100.0], None)
+    s1 = ekf.status()["gnss_pos"]
+    assert s1.fused and s1.innovation_var[0] == pytest.approx(p_before + r, rel=1e-9)
+    for k in range(1, 41):
+        t = 100_000 + k * 5000
+        ekf.predict(ImuSample(t, np.zeros(3), G_DOWN_SPECIFIC_FORCE.copy()), AttitudeSample(t, 0.0, 0.0, 0.0))
+    assert ekf.t_us == 300_000
+    p_before = ekf.P[0, 0]
+    ekf.fuse_gnss(300_000, ekf.x[S.pos_ned], None)
+    s2 = ekf.status()["gnss_pos"]
+    assert s2.fused and s2.innovation_var[0] == pytest.approx(p_before + 300.0 * r, rel=1e-9)
 
 
 def test_gnss_position_reset_after_continuous_rejection():

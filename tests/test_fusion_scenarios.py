@@ -1,7 +1,7 @@
 """Scenario and statistical checks of the navigation EKF against the kinematic truth of :mod:`tests.fusion_truth`.
 
 Flights: coordinated turns (15 deg/s both ways between straight legs) at 20 m/s airspeed and ~100 m height with
-a gentle climb/descent; IMU 200 Hz, AHRS 50 Hz (1 deg heading bias), pitot 50 Hz (1 % scale error), baro 25 Hz,
+a gentle climb/descent; IMU 100 Hz, AHRS 50 Hz (1 deg heading bias), pitot 50 Hz (1 % scale error), baro 25 Hz,
 GNSS 5 Hz, camera 30 Hz with 10-frame cycles.  The truth is independent of the filter (its own integration, its own
 sensor error draws); every run is seeded.
 """
@@ -15,12 +15,12 @@ import numpy as np
 import pytest
 
 from fusion import ekf as ekf_mod
-from fusion.config import EkfConfig
 from fusion.consistency import chi2_interval, fraction_in_interval
+from fusion.state import S
 from gsoe.angles import angle_diff
-from tests.fusion_truth import TruthConfig, make_flight, naive_velocity_ne, run_ekf
+from tests.fusion_truth import TruthConfig, filter_config, make_flight, naive_velocity_ne, run_ekf
 
-CFG0 = dataclasses.replace(EkfConfig(), fusion_delay_s=0.0)
+CFG0 = filter_config()          # the defaults, with this truth's optical error model and no fusion delay
 GNSS_OFF_S = 60.0
 
 
@@ -31,8 +31,8 @@ def turning_flight():
 
 @pytest.fixture(scope="module")
 def outage_flight():
-    # the wind drifts by (1.2, -1.0) m/s over the 2-minute outage: air data alone cannot follow it
-    return make_flight(TruthConfig(duration_s=180.0, seed=5, wind_rate_ne_m_s2=(0.01, -0.008)))
+    # the wind drifts by (0.9, -0.7) m/s over the 90 s outage: air data alone cannot follow it
+    return make_flight(TruthConfig(duration_s=150.0, seed=5, wind_rate_ne_m_s2=(0.01, -0.008)))
 
 
 @pytest.fixture(scope="module")
@@ -62,6 +62,18 @@ def test_wind_converges_with_gnss_and_turns(turning_flight):
     assert math.degrees(est.yaw_bias_rad) == pytest.approx(1.0, abs=0.3)
 
 
+def test_optical_frame_rotation_is_learnt_apart_from_the_ahrs_heading_bias():
+    """The optical frame carries its own heading error (2 deg, as the optical estimator's gyro bias produces),
+    besides the AHRS's 1 deg: with GNSS the filter separates them (opt_rot vs yaw_bias), so the drift is right."""
+    truth = TruthConfig(duration_s=90.0, seed=2, optical_rot_deg=2.0)
+    r = run_ekf(make_flight(truth), CFG0)
+    est = r.ekf.estimate()
+    x = r.ekf.x
+    assert math.degrees(est.yaw_bias_rad) == pytest.approx(truth.ahrs_yaw_bias_deg, abs=0.3)
+    assert math.degrees(x[S.opt_rot][0]) == pytest.approx(truth.optical_rot_deg, abs=0.3)
+    assert np.degrees(np.abs(r.drift_err_rad[r.t_s > 45.0])).max() < 1.0
+
+
 def test_outage_position_error_grows_slowly_with_optical_and_fast_without(outage_flight, outage_runs):
     fl = outage_flight
     with_opt = outage_runs["optical"]
@@ -69,11 +81,11 @@ def test_outage_position_error_grows_slowly_with_optical_and_fast_without(outage
     m = _outage(with_opt)
     i0 = np.searchsorted(with_opt.t_s, GNSS_OFF_S)
     flown = with_opt.dist_m[-1] - with_opt.dist_m[i0]
-    assert flown > 2000.0
+    assert flown > 1500.0
     e_opt = np.linalg.norm(with_opt.pos_err, axis=1)
     e_air = np.linalg.norm(without.pos_err, axis=1)
     assert e_opt[m].max() < 0.005 * flown                 # < 0.5 % of the distance flown in the outage
-    assert e_air[-1] > 10.0 * e_opt[-1]                     # air data + IMU alone drift with the wind
+    assert e_air[-1] > 5.0 * e_opt[-1]                      # air data + IMU alone drift with the wind
     assert e_air[-1] > 0.01 * flown
     # honest uncertainty and validity: optical keeps the estimate valid, air data alone is flagged invalid
     assert with_opt.valid[m].mean() > 0.99
@@ -106,8 +118,11 @@ def test_bad_match_is_rejected_by_the_gate_and_the_state_carries_on(outage_fligh
     clean = outage_runs["optical"]
     assert np.abs(r.pos_err - clean.pos_err).max() < 0.3
     assert np.abs(r.wind_err - clean.wind_err).max() < 0.05
-    n_rej = r.statuses[-1]["optical"].n_rejected
-    assert n_rej == 2
+    # apart from the two bad steps, the same steps are rejected as in the clean run (the gate's rare false alarms)
+    rejected = {k for k, v in r.step_status.items() if v.rejected}
+    rejected_clean = {k for k, v in clean.step_status.items() if v.rejected}
+    assert rejected - rejected_clean == {bad, invalid}
+    assert len(rejected_clean) <= 0.002 * len(clean.step_status)
 
 
 def test_nees_inside_chi_square_interval_on_a_seeded_run():
@@ -119,7 +134,7 @@ def test_nees_inside_chi_square_interval_on_a_seeded_run():
     truth = TruthConfig(duration_s=150.0, seed=3)
     matched = dataclasses.replace(
         CFG0,
-        # IMU 0.05 m/s^2 @ 200 Hz, AHRS 0.1 deg @ 50 Hz x g, and the 50 Hz attitude held over 4 IMU samples in turns
+        # IMU 0.05 m/s^2 @ 100 Hz, AHRS 0.1 deg @ 50 Hz x g, and the 50 Hz attitude held over 2 IMU samples in turns
         accel_noise_m_s2_per_rt_hz=0.03,
         wind_rw_m_s_per_rt_s=0.005,           # constant wind
         yaw_bias_rw_deg_per_rt_s=0.001,       # constant AHRS heading bias
@@ -129,8 +144,7 @@ def test_nees_inside_chi_square_interval_on_a_seeded_run():
         baro_sigma_m=0.6,                     # 0.5 m
         sideslip_sigma_deg=3.0,               # true sideslip ~ alpha * sin(roll): up to 0.8 deg in the turns
         gnss_pos_ne_sigma_m=1.0, gnss_pos_d_sigma_m=2.0, gnss_vel_ne_sigma_m_s=0.1, gnss_vel_d_sigma_m_s=0.1,
-        optical_att_rel_sigma_deg=0.03,       # matcher 0.3 px (default) + 0.03 deg relative attitude
-    )
+    )                                         # optical: matcher 0.3 px + 0.03 deg relative attitude (CFG0)
     r = run_ekf(make_flight(truth), matched, gnss_until_s=GNSS_OFF_S)
     assert r.nees_pvw.size > 1000 and np.isfinite(r.nees_pvw).all()
     frac = fraction_in_interval(r.nees_pvw, dof=6, prob=0.95)
@@ -156,8 +170,8 @@ def test_accumulated_displacement_beats_naive_per_frame_velocity(outage_flight, 
 
     v_acc, v_naive = rms(acc.vel_err[m]), rms(naive.vel_err[m])
     d_acc, d_naive = rms(acc.drift_err_rad[m]), rms(naive.drift_err_rad[m])
-    assert v_acc < 0.6 * v_naive
-    assert d_acc < 0.6 * d_naive
+    assert v_acc < 0.7 * v_naive                             # measured over 4 seeds: 0.45-0.54
+    assert d_acc < 0.7 * d_naive                             # 0.42-0.54
     assert math.degrees(d_acc) < 0.5
     # the raw per-frame velocity itself (no filter) is an order of magnitude worse than either filter
     raw, prev = [], None

@@ -1,0 +1,268 @@
+"""What the navigation EKF assumes: process noise, initial uncertainty, measurement noise, gates, timing, validity.
+
+Built from the ``[ekf]`` table of the configuration file with :func:`ekf_config_from_raw` (``raw`` is the mapping
+:func:`nav.configfile.load_gsoe_config` returns next to the optical config); every field is validated and a bad one
+raises :class:`gsoe.config.ConfigError` naming ``ekf.<field>``.  The *true* sensor errors of a simulation live in
+the scenario (``sim``), not here (STYLE section 8).
+
+Units are in the names.  Noise densities are root power spectral densities: ``*_per_rt_hz`` for white noise on a
+rate (``(m/s^2)/sqrt(Hz)`` for acceleration) and ``*_per_rt_s`` for random walks (the one-sigma change after one
+second).  Angles are degrees here (an edge); code reads the ``*_rad`` properties.  Gates are thresholds on the
+normalised innovation squared (NIS), i.e. chi-square quantiles of the measurement's dimension: 10.83, 13.82 and
+16.27 are the 99.9 % points for 1, 2 and 3 degrees of freedom.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from gsoe.config import ConfigError, build, in_range
+
+
+@dataclass(frozen=True)
+class EkfConfig:
+    """Navigation EKF parameters (``[ekf]`` in ``config/default.toml``; the defaults below are the same values).
+
+    Process noise
+        ``accel_noise_m_s2_per_rt_hz``: white acceleration noise driving the velocity (IMU noise, vibration, AHRS
+        attitude noise times g, AHRS latency in turns), per NED axis.  ``wind_rw_m_s_per_rt_s``: the wind state
+        follows the total wind the aircraft flies in (steady + turbulence): Dryden turbulence at 100 m, light
+        (sigma ~1.3 m/s, correlation time ~25 s) to moderate (twice that), is a random walk of
+        ``sqrt(2 sigma^2 / tau)`` ~ 0.35-0.7.
+        ``accel_bias_rw_m_s2_per_rt_s``, ``yaw_bias_rw_deg_per_rt_s``, ``opt_rot_rw_deg_per_rt_s`` (the optical frame's
+        heading error follows the optical estimator's gyro-bias filter, so it moves faster than the AHRS's),
+        ``baro_bias_rw_m_per_rt_s``, ``terrain_rw_m_per_rt_s``, ``tas_scale_rw_per_rt_s``: random walks of the
+        slowly varying states.
+    Initial one-sigma uncertainties
+        ``init_*_sigma_*``; also the values a covariance reset restores.  The airspeed scale is by default an
+        almost fixed calibration (``init_tas_scale_sigma`` 0.3 %, no random walk): on long slow upwind legs the
+        scale and the along-heading wind are degenerate, and the residual bias of ``|v - wind|`` in turbulence (the
+        filter's smoothed wind against a convex function) walks a loose scale away: in the simulator's strong-wind
+        scenario a 2 % prior ends at +22 % (true +2.7 %) and the wind 2 m/s low; with 0.3 % the wind RMSE is
+        0.54 m/s.  Loosen it for flights with long crosswind legs in calm air.
+    Measurement noise (one sigma, used when the sensor does not report its own accuracy)
+        ``tas_sigma_m_s`` (true airspeed; includes turbulence), ``sideslip_sigma_deg`` (synthetic zero sideslip,
+        fused with every airspeed sample when ``sideslip_fusion``), ``baro_sigma_m``, ``gnss_pos_ne_sigma_m``,
+        ``gnss_pos_d_sigma_m``, ``gnss_vel_ne_sigma_m_s``, ``gnss_vel_d_sigma_m_s``.
+        ``tas_min_m_s``: airspeed below which neither airspeed nor sideslip is fused (on the ground, pitot noise).
+        ``gnss_pos_corr_time_s``: correlation time of the receiver's position error (it wanders slowly); fixes
+        closer together than that do not carry independent errors, so each fix's variance is multiplied by
+        ``max(1, 2 tau / dt)`` (``dt``: time since the previous fix), the information rate of a first-order
+        Gauss-Markov error.  0: white errors.
+    Optical noise model (pixels in the cycle's stabilised frame; see :class:`fusion.measurements.OpticalDisplacement`)
+        ``optical_match_sigma_px``: the matcher's sub-pixel error at good quality; it grows as ``psr_ref / psr``
+        below ``optical_psr_ref``, by at most ``1 / optical_quality_floor``.  ``optical_att_rel_sigma_deg`` +
+        ``optical_att_rel_sigma_per_rad * rel_rot_rad`` + ``optical_att_rel_sigma_deg_per_s * (t - base_t)``:
+        one-sigma relative attitude error between the base and the current frame (AHRS/gyro noise, gyro scale error
+        over the rotation ``rel_rot_rad``, residual gyro bias integrated since the base snapshot); it moves the
+        template by ``focal_px`` times that angle, independent of altitude.  The defaults are fitted to the pixel
+        errors of the simulator's paper_sil flight against its truth (99.7 % of steps inside the optical gate).
+        ``optical_rel_rot_fallback_deg``: rotation assumed when a step carries no finite ``rel_rot_rad``.
+        ``optical_min_height_m``: no optical fusion below this height above ground (the ground sample distance
+        degenerates).
+    Gates (NIS thresholds; a measurement whose NIS exceeds its gate is rejected, ``test_ratio = NIS / gate``)
+        ``gate_optical_nis`` (2 dof), ``gate_airspeed_nis``, ``gate_sideslip_nis``, ``gate_baro_nis`` (1 dof),
+        ``gate_gnss_pos_nis``, ``gate_gnss_vel_nis`` (3 dof; also used for the 2-dof horizontal-only forms).
+        ``gnss_reset_after_s``: after GNSS position (velocity) has been rejected continuously for this long, the
+        position (velocity) is reset to the GNSS value (e.g. GNSS back after a long outage).
+    Timing
+        ``fusion_delay_s``: the filter runs this far behind the newest IMU sample (a delayed fusion horizon, as PX4
+        EKF2), so measurements stamped up to this much before the newest IMU sample are still fused at their own
+        time.  Set it to at least the camera's processing latency; 0 when samples arrive in time order.
+        ``predict_period_s``: IMU samples are accumulated into one covariance prediction of at least this length.
+        ``buffer_max_events``: at most this many measurements wait in the buffer (a flood of future-stamped samples
+        is rejected).  ``att_max_age_s``: an IMU sample whose attitude is older (or newer) than this is rejected.
+        ``imu_max_gap_s``: a longer gap between IMU samples is flagged in the ``imu`` status.
+    Validity of the output
+        The estimate is valid when the horizontal velocity sigma is at most ``valid_vel_sigma_max_m_s``, the drift
+        sigma at most ``valid_drift_sigma_max_deg``, the ground speed at least ``valid_min_ground_speed_m_s`` (drift
+        and course are undefined at rest), and optical or GNSS data was fused within ``valid_aid_timeout_s``.
+    """
+
+    # process noise
+    accel_noise_m_s2_per_rt_hz: float = 0.05
+    accel_bias_rw_m_s2_per_rt_s: float = 1e-3
+    wind_rw_m_s_per_rt_s: float = 0.7
+    yaw_bias_rw_deg_per_rt_s: float = 0.002
+    opt_rot_rw_deg_per_rt_s: float = 0.05
+    baro_bias_rw_m_per_rt_s: float = 0.03
+    terrain_rw_m_per_rt_s: float = 0.02
+    tas_scale_rw_per_rt_s: float = 0.0
+    # initial uncertainty
+    init_pos_ne_sigma_m: float = 10.0
+    init_pos_d_sigma_m: float = 5.0
+    init_vel_ne_sigma_m_s: float = 5.0
+    init_vel_d_sigma_m_s: float = 2.0
+    init_wind_sigma_m_s: float = 5.0
+    init_accel_bias_sigma_m_s2: float = 0.1
+    init_yaw_bias_sigma_deg: float = 3.0
+    init_opt_rot_sigma_deg: float = 3.0
+    init_baro_bias_sigma_m: float = 2.0
+    init_terrain_sigma_m: float = 2.0
+    init_tas_scale_sigma: float = 0.003
+    # measurement noise
+    tas_sigma_m_s: float = 0.5
+    tas_min_m_s: float = 6.0
+    sideslip_fusion: bool = True
+    sideslip_sigma_deg: float = 10.0
+    baro_sigma_m: float = 1.0
+    gnss_pos_ne_sigma_m: float = 1.5
+    gnss_pos_d_sigma_m: float = 3.0
+    gnss_vel_ne_sigma_m_s: float = 0.15
+    gnss_vel_d_sigma_m_s: float = 0.2
+    gnss_pos_corr_time_s: float = 30.0
+    # optical noise model
+    optical_match_sigma_px: float = 0.1
+    optical_psr_ref: float = 4.0
+    optical_quality_floor: float = 0.2
+    optical_att_rel_sigma_deg: float = 0.01
+    optical_att_rel_sigma_per_rad: float = 0.005
+    optical_att_rel_sigma_deg_per_s: float = 0.12
+    optical_rel_rot_fallback_deg: float = 10.0
+    optical_min_height_m: float = 5.0
+    # gates
+    gate_optical_nis: float = 13.82
+    gate_airspeed_nis: float = 10.83
+    gate_sideslip_nis: float = 10.83
+    gate_baro_nis: float = 10.83
+    gate_gnss_pos_nis: float = 16.27
+    gate_gnss_vel_nis: float = 16.27
+    gnss_reset_after_s: float = 5.0
+    # timing
+    fusion_delay_s: float = 0.1
+    predict_period_s: float = 0.01
+    buffer_max_events: int = 2000
+    att_max_age_s: float = 0.1
+    imu_max_gap_s: float = 0.1
+    # validity
+    valid_vel_sigma_max_m_s: float = 1.0
+    valid_drift_sigma_max_deg: float = 3.0
+    valid_min_ground_speed_m_s: float = 3.0
+    valid_aid_timeout_s: float = 2.0
+
+    def __post_init__(self) -> None:
+        pos = {
+            "accel_noise_m_s2_per_rt_hz": (1e-4, 10.0),
+            "init_pos_ne_sigma_m": (1e-3, 1e5),
+            "init_pos_d_sigma_m": (1e-3, 1e4),
+            "init_vel_ne_sigma_m_s": (1e-3, 100.0),
+            "init_vel_d_sigma_m_s": (1e-3, 100.0),
+            "init_wind_sigma_m_s": (1e-3, 50.0),
+            "init_accel_bias_sigma_m_s2": (1e-5, 5.0),
+            "init_yaw_bias_sigma_deg": (1e-3, 180.0),
+            "init_opt_rot_sigma_deg": (1e-3, 180.0),
+            "init_baro_bias_sigma_m": (1e-3, 1e4),
+            "init_terrain_sigma_m": (1e-3, 1e4),
+            "init_tas_scale_sigma": (1e-5, 0.5),
+            "tas_sigma_m_s": (1e-3, 20.0),
+            "sideslip_sigma_deg": (1e-3, 90.0),
+            "baro_sigma_m": (1e-3, 100.0),
+            "gnss_pos_ne_sigma_m": (1e-3, 1e3),
+            "gnss_pos_d_sigma_m": (1e-3, 1e3),
+            "gnss_vel_ne_sigma_m_s": (1e-3, 50.0),
+            "gnss_vel_d_sigma_m_s": (1e-3, 50.0),
+            "optical_match_sigma_px": (1e-3, 50.0),
+            "optical_psr_ref": (1e-3, 1e3),
+            "optical_quality_floor": (1e-3, 1.0),
+            "optical_min_height_m": (0.1, 1e4),
+            "gate_optical_nis": (0.1, 1e6),
+            "gate_airspeed_nis": (0.1, 1e6),
+            "gate_sideslip_nis": (0.1, 1e6),
+            "gate_baro_nis": (0.1, 1e6),
+            "gate_gnss_pos_nis": (0.1, 1e6),
+            "gate_gnss_vel_nis": (0.1, 1e6),
+            "valid_vel_sigma_max_m_s": (1e-3, 100.0),
+            "valid_drift_sigma_max_deg": (1e-3, 180.0),
+            "valid_aid_timeout_s": (1e-3, 1e4),
+            "att_max_age_s": (1e-4, 10.0),
+            "imu_max_gap_s": (1e-4, 10.0),
+            "gnss_reset_after_s": (1e-3, 1e4),
+        }
+        for name, (lo, hi) in pos.items():
+            in_range(getattr(self, name), lo, hi, name)
+        nonneg = {
+            "accel_bias_rw_m_s2_per_rt_s": 1.0,
+            "wind_rw_m_s_per_rt_s": 10.0,
+            "yaw_bias_rw_deg_per_rt_s": 10.0,
+            "opt_rot_rw_deg_per_rt_s": 10.0,
+            "baro_bias_rw_m_per_rt_s": 10.0,
+            "terrain_rw_m_per_rt_s": 100.0,
+            "tas_scale_rw_per_rt_s": 0.1,
+            "tas_min_m_s": 100.0,
+            "gnss_pos_corr_time_s": 3600.0,
+            "optical_att_rel_sigma_deg": 30.0,
+            "optical_att_rel_sigma_per_rad": 1.0,
+            "optical_att_rel_sigma_deg_per_s": 30.0,
+            "optical_rel_rot_fallback_deg": 180.0,
+            "fusion_delay_s": 5.0,
+            "predict_period_s": 1.0,
+            "valid_min_ground_speed_m_s": 100.0,
+        }
+        for name, hi in nonneg.items():
+            in_range(getattr(self, name), 0.0, hi, name)
+        in_range(self.buffer_max_events, 10, 1_000_000, "buffer_max_events")
+
+    # radians for the code
+    @property
+    def yaw_bias_rw_rad_per_rt_s(self) -> float:
+        return math.radians(self.yaw_bias_rw_deg_per_rt_s)
+
+    @property
+    def init_yaw_bias_sigma_rad(self) -> float:
+        return math.radians(self.init_yaw_bias_sigma_deg)
+
+    @property
+    def opt_rot_rw_rad_per_rt_s(self) -> float:
+        return math.radians(self.opt_rot_rw_deg_per_rt_s)
+
+    @property
+    def init_opt_rot_sigma_rad(self) -> float:
+        return math.radians(self.init_opt_rot_sigma_deg)
+
+    @property
+    def sideslip_sigma_rad(self) -> float:
+        return math.radians(self.sideslip_sigma_deg)
+
+    @property
+    def optical_att_rel_sigma_rad(self) -> float:
+        return math.radians(self.optical_att_rel_sigma_deg)
+
+    @property
+    def optical_att_rel_sigma_rad_per_s(self) -> float:
+        return math.radians(self.optical_att_rel_sigma_deg_per_s)
+
+    @property
+    def optical_rel_rot_fallback_rad(self) -> float:
+        return math.radians(self.optical_rel_rot_fallback_deg)
+
+    @property
+    def valid_drift_sigma_max_rad(self) -> float:
+        return math.radians(self.valid_drift_sigma_max_deg)
+
+
+#: Top-level sections of the configuration file that are not the EKF's: their presence marks a whole-file mapping.
+_OTHER_SECTIONS = frozenset({"camera", "stab", "match", "cycle", "integrity", "companion"})
+
+
+def ekf_config_from_raw(raw: Mapping[str, Any]) -> EkfConfig:
+    """Build the EKF config from the raw configuration mapping.
+
+    ``raw`` is either the whole file's mapping (its ``ekf`` table is used; a file without one gives the defaults)
+    or the ``ekf`` table itself (``raw["ekf"]``).  A mapping with an ``ekf`` key or any other known top-level
+    section counts as the whole file; anything else is the table, so a misspelt key is an error naming
+    ``ekf.<key>``, never silently ignored.
+    """
+    if not isinstance(raw, Mapping):
+        raise ConfigError("ekf", f"must be a table, got {type(raw).__name__}")
+    if "ekf" in raw:
+        table = raw["ekf"]
+    elif _OTHER_SECTIONS.intersection(raw):
+        table = {}
+    else:
+        table = raw
+    if not isinstance(table, Mapping):
+        raise ConfigError("ekf", f"must be a table, got {type(table).__name__}")
+    return build(EkfConfig, table, "ekf")

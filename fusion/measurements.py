@@ -1,0 +1,333 @@
+"""Measurement models of the navigation EKF, one small class each (STYLE section 4).
+
+Every model has ``predict(x) -> z_hat`` (shape ``(m,)``), ``jacobian(x) -> H`` (analytic, shape ``(m, n)``),
+``linearise(x) -> (z_hat, H)`` (both at once, sharing the work; what the EKF calls) and ``noise(...) -> R`` (shape
+``(m, m)``).  ``x`` is the state vector laid out by :data:`fusion.state.S`; frames and
+units as in :mod:`gsoe` (NED, FRD, SI, radians).  Per-measurement context (the camera's focal length, the AHRS
+attitude, which axes a GNSS fix has) is given when the model is built, so a model is a pure function of the state.
+The tests check every ``jacobian`` against finite differences of ``predict``.
+
+Heading: the state's ``yaw_bias`` is ``yaw_ahrs - yaw_true``, so a heading reported by the AHRS (or a
+:class:`~gsoe.types.GsoeStep`'s ``base_yaw_rad``, which comes from it) is corrected as ``yaw_true = yaw - yaw_bias``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from fusion.config import EkfConfig
+from fusion.state import S
+from gsoe.types import GsoeStep
+
+Vec = NDArray[np.float64]
+Mat = NDArray[np.float64]
+
+#: Air-relative speed (m/s) below which the airspeed and sideslip models are not evaluated (their Jacobians divide
+#: by it); the EKF never fuses airspeed below ``EkfConfig.tas_min_m_s``, which must be larger.
+MIN_AIR_SPEED_M_S = 0.5
+
+
+class MeasurementModel(Protocol):
+    """What the EKF needs from a measurement model."""
+
+    def predict(self, x: Vec) -> Vec: ...
+
+    def jacobian(self, x: Vec) -> Mat: ...
+
+    def linearise(self, x: Vec) -> tuple[Vec, Mat]: ...
+
+
+# Scalar indices derived from the layout (the models run at IMU/camera rate; scalar indexing is the cheap path).
+_N, _E = S.pos_ne.start, S.pos_ne.start + 1
+_BN, _BE, _BD = S.base_pos_ne.start, S.base_pos_ne.start + 1, S.base_pos_d.start
+_VN, _VE, _VD = S.vel_ne.start, S.vel_ne.start + 1, S.vel_d.start
+_WN, _WE = S.wind_ne.start, S.wind_ne.start + 1
+_PD, _YB, _BB, _TH, _TS = S.pos_d.start, S.yaw_bias.start, S.baro_bias.start, S.terrain_h.start, S.tas_scale.start
+_OR = S.opt_rot.start
+
+
+# --------------------------------------------------------------------------------------------------------------
+@dataclass(frozen=True, slots=True)
+class OpticalDisplacement:
+    """The template's accumulated migration ``[dx_px, dy_px]`` since the cycle's base snapshot.
+
+    The position change since the base snapshot, ``pos_ne - base_pos_ne`` (the clone), rotated into the cycle's
+    stabilised frame (cross track to the right, along track forward of ``psi = base_yaw_rad - yaw_bias + opt_rot``)
+    and divided by the base image's ground sample distance ``h_base / focal_px`` with
+    ``h_base = -base_pos_d - terrain_h`` (height above the ground at the base snapshot)::
+
+        dx_px = focal_px * (-sin(psi) dN + cos(psi) dE) / h_base
+        dy_px = focal_px * ( cos(psi) dN + sin(psi) dE) / h_base
+
+    Parameters: ``focal_px`` (the virtual nadir camera's focal length, px) and ``base_yaw_rad`` (the AHRS heading
+    the cycle's stabilised frame was built with, rad).  The stabilised image is de-rotated with the same attitude
+    it is labelled with, so an AHRS heading error shows only in the label (``- yaw_bias``); ``opt_rot`` is what the
+    optical estimator's own attitude adds (gyro bias in its relative rotation, see :mod:`fusion.state`).
+    """
+
+    focal_px: float
+    base_yaw_rad: float
+
+    def _parts(self, x: Vec) -> tuple[float, float, float, float, float, float]:
+        psi = self.base_yaw_rad - x[_YB] + x[_OR]
+        c, s = math.cos(psi), math.sin(psi)
+        dn, de = x[_N] - x[_BN], x[_E] - x[_BE]
+        along = c * dn + s * de
+        cross = -s * dn + c * de
+        h = -x[_BD] - x[_TH]
+        return c, s, along, cross, h, self.focal_px / h
+
+    def height_base_m(self, x: Vec) -> float:
+        """Height above ground at the base snapshot according to ``x`` (m)."""
+        return float(-x[_BD] - x[_TH])
+
+    def predict(self, x: Vec) -> Vec:
+        _, _, along, cross, _, k = self._parts(x)
+        return np.array([k * cross, k * along])
+
+    def jacobian(self, x: Vec) -> Mat:
+        return self.linearise(x)[1]
+
+    def linearise(self, x: Vec) -> tuple[Vec, Mat]:
+        c, s, along, cross, h, k = self._parts(x)
+        H = np.zeros((2, S.dim))
+        H[0, _N], H[0, _E], H[1, _N], H[1, _E] = -k * s, k * c, k * c, k * s
+        H[0, _BN], H[0, _BE], H[1, _BN], H[1, _BE] = k * s, -k * c, -k * c, -k * s
+        zx_h, zy_h = k * cross / h, k * along / h        # d z / d h_base = -z / h, and d h_base / d(.) = -1
+        H[0, _BD] = H[0, _TH] = zx_h
+        H[1, _BD] = H[1, _TH] = zy_h
+        H[0, _YB], H[1, _YB] = k * along, -k * cross     # d psi / d yaw_bias = -1
+        H[0, _OR], H[1, _OR] = -k * along, k * cross     # d psi / d opt_rot = +1
+        return np.array([k * cross, k * along]), H
+
+    def base_from_step(self, x: Vec, z_px: Vec) -> tuple[Vec, Mat, Mat]:
+        """The inverse model, for a cycle whose base time was missed: the base position ``[N, E, D]`` implied by the
+        current state and a step ``z_px = [dx_px, dy_px]``, ``pos_ne - (h / f) R(psi) [dy, dx]`` with the height now
+        standing for the height then (``base_pos_d = pos_d``), and its Jacobians w.r.t. the state (3 x n) and
+        w.r.t. ``z_px`` (3 x 2)."""
+        psi = self.base_yaw_rad - x[_YB] + x[_OR]
+        c, s = math.cos(psi), math.sin(psi)
+        dx, dy = float(z_px[0]), float(z_px[1])
+        uN, uE = c * dy - s * dx, s * dy + c * dx          # the pixel displacement rotated to north/east
+        f = self.focal_px
+        k = (-x[_PD] - x[_TH]) / f
+        base = np.array([x[_N] - k * uN, x[_E] - k * uE, x[_PD]])
+        J = np.zeros((3, S.dim))
+        J[0, _N] = J[1, _E] = J[2, _PD] = 1.0
+        J[0, _PD] = J[0, _TH] = uN / f                       # d(-k)/d(pos_d) = d(-k)/d(terrain_h) = 1/f
+        J[1, _PD] = J[1, _TH] = uE / f
+        J[0, _YB], J[1, _YB] = -k * uE, k * uN               # d psi / d yaw_bias = -1
+        J[0, _OR], J[1, _OR] = k * uE, -k * uN               # d psi / d opt_rot = +1
+        Kz = np.array([[k * s, -k * c], [-k * c, -k * s], [0.0, 0.0]])
+        return base, J, Kz
+
+    @staticmethod
+    def noise_sigma_px(step: GsoeStep, cfg: EkfConfig) -> tuple[float, float]:
+        """(matcher sigma, attitude-induced sigma) in px for one step.
+
+        Matcher: ``optical_match_sigma_px / q`` with the quality ``q = clip(psr / optical_psr_ref,
+        optical_quality_floor, 1)`` (a non-finite PSR counts as the floor).  Attitude: ``focal_px`` times the
+        relative attitude error between base and current frame, ``optical_att_rel_sigma_rad +
+        optical_att_rel_sigma_per_rad * rel_rot_rad + optical_att_rel_sigma_rad_per_s * (t - base_t)``
+        (independent of altitude: an angle error moves the image by ``f * angle`` pixels at any height).
+        """
+        psr = step.quality.psr
+        q = psr / cfg.optical_psr_ref if not math.isnan(psr) else 0.0
+        q = min(1.0, max(cfg.optical_quality_floor, q))
+        rel = step.rel_rot_rad if math.isfinite(step.rel_rot_rad) else cfg.optical_rel_rot_fallback_rad
+        elapsed_s = max(0, step.t_us - step.base_t_us) * 1e-6
+        att_rad = (cfg.optical_att_rel_sigma_rad + cfg.optical_att_rel_sigma_per_rad * abs(rel)
+                   + cfg.optical_att_rel_sigma_rad_per_s * elapsed_s)
+        return cfg.optical_match_sigma_px / q, step.focal_px * att_rad
+
+    @staticmethod
+    def noise(step: GsoeStep, cfg: EkfConfig) -> Mat:
+        """2x2 covariance (px^2) of ``[dx_px, dy_px]``: matcher and attitude-induced errors, equal on both axes."""
+        m, a = OpticalDisplacement.noise_sigma_px(step, cfg)
+        return np.eye(2) * (m * m + a * a)
+
+
+# --------------------------------------------------------------------------------------------------------------
+@dataclass(frozen=True, slots=True)
+class TrueAirspeed:
+    """Measured true airspeed (m/s): ``(1 + tas_scale) * |v_ground - wind|`` with ``v_ground`` 3-D (vertical speed
+    from the state) and the wind horizontal, as PX4 EKF2 and ArduPilot fuse it."""
+
+    @staticmethod
+    def _air(x: Vec) -> tuple[float, float, float, float]:
+        an, ae, ad = x[_VN] - x[_WN], x[_VE] - x[_WE], x[_VD]
+        return an, ae, ad, max(math.sqrt(an * an + ae * ae + ad * ad), MIN_AIR_SPEED_M_S)
+
+    def predict(self, x: Vec) -> Vec:
+        speed = self._air(x)[3]
+        return np.array([(1.0 + x[_TS]) * speed])
+
+    def jacobian(self, x: Vec) -> Mat:
+        return self.linearise(x)[1]
+
+    def linearise(self, x: Vec) -> tuple[Vec, Mat]:
+        an, ae, ad, speed = self._air(x)
+        k = (1.0 + x[_TS]) / speed
+        H = np.zeros((1, S.dim))
+        H[0, _VN], H[0, _VE], H[0, _VD] = k * an, k * ae, k * ad
+        H[0, _WN], H[0, _WE] = -k * an, -k * ae
+        H[0, _TS] = speed
+        return np.array([(1.0 + x[_TS]) * speed]), H
+
+    @staticmethod
+    def noise(cfg: EkfConfig) -> Mat:
+        return np.array([[cfg.tas_sigma_m_s**2]])
+
+    @staticmethod
+    def wind_from_airspeed(x: Vec, tas_m_s: float, yaw_ahrs_rad: float) -> tuple[Vec, Mat, Vec, Vec]:
+        """The wind triangle for a wind reset (PX4 EKF2's ``resetWindUsingAirspeed``): with zero sideslip the air
+        moves along the true heading ``psi = yaw_ahrs - yaw_bias`` at the horizontal true airspeed, so
+        ``wind_ne = vel_ne - tas_h [cos psi, sin psi]`` with ``tas_h = sqrt((tas / (1 + tas_scale))^2 - vel_d^2)``.
+
+        Returns the wind (m/s, N/E) and its Jacobians w.r.t. the state (2 x n), the measured airspeed (2,) and the
+        sideslip angle (2,; for the sideslip's uncertainty)."""
+        k = 1.0 + x[_TS]
+        tas = tas_m_s / k
+        vd = x[_VD]
+        tas_h = math.sqrt(max(tas * tas - vd * vd, MIN_AIR_SPEED_M_S**2))
+        psi = yaw_ahrs_rad - x[_YB]
+        c, s = math.cos(psi), math.sin(psi)
+        wind = np.array([x[_VN] - tas_h * c, x[_VE] - tas_h * s])
+        dh_dtas = tas / tas_h                               # d tas_h / d tas (true airspeed)
+        J = np.zeros((2, S.dim))
+        J[0, _VN] = J[1, _VE] = 1.0
+        J[0, _YB], J[1, _YB] = -tas_h * s, tas_h * c        # d psi / d yaw_bias = -1
+        J[0, _VD], J[1, _VD] = c * vd / tas_h, s * vd / tas_h
+        J[0, _TS], J[1, _TS] = c * dh_dtas * tas / k, s * dh_dtas * tas / k    # d tas / d tas_scale = -tas / k
+        d_tas = np.array([-c, -s]) * dh_dtas / k
+        d_beta = np.array([s, -c]) * tas_h                  # air direction psi + beta
+        return wind, J, d_tas, d_beta
+
+
+# --------------------------------------------------------------------------------------------------------------
+@dataclass(frozen=True, slots=True)
+class SyntheticSideslip:
+    """Zero-sideslip pseudo-measurement (rad, small-angle ``v_air_b_y / v_air_b_x``), measured value 0.
+
+    The air-relative velocity ``[v_ne - wind_ne, v_d]`` is rotated into the body frame with the AHRS attitude
+    ``R_nb_ahrs`` corrected by the heading error: ``R_nb = R_z(-yaw_bias) @ R_nb_ahrs``.  In coordinated flight
+    the aircraft points into the relative wind, which together with the airspeed makes the wind observable
+    without turns.
+    """
+
+    R_nb_ahrs: Mat
+
+    def _parts(self, x: Vec) -> tuple[float, float, tuple[float, float, float], tuple[float, float, float],
+                                      tuple[float, float]]:
+        """Body-frame air velocity ``(vb_x, vb_y)``, the body x and y axes in NED (columns 0 and 1 of ``R_nb_ahrs``)
+        and ``w = R_z(yaw_bias) v_air`` (N, E), so that ``vb = R_nb_ahrs^T [w, v_air_d]``.
+
+        Scalar arithmetic: this runs with every airspeed sample, and nine multiplications are cheaper than four
+        3x3 NumPy products."""
+        an, ae, ad = x[_VN] - x[_WN], x[_VE] - x[_WE], x[_VD]
+        c, s = math.cos(x[_YB]), math.sin(x[_YB])
+        wn, we = c * an - s * ae, s * an + c * ae            # R_z(yaw_bias) = R_z(-yaw_bias)^T
+        (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = self.R_nb_ahrs.tolist()
+        vbx = r00 * wn + r10 * we + r20 * ad                 # (R_nb^T w)_x: column 0 of R_nb
+        vby = r01 * wn + r11 * we + r21 * ad
+        return vbx, vby, (r00, r10, r20), (r01, r11, r21), (wn, we)
+
+    def predict(self, x: Vec) -> Vec:
+        vbx, vby, _, _, _ = self._parts(x)
+        return np.array([vby / max(vbx, MIN_AIR_SPEED_M_S)])
+
+    def jacobian(self, x: Vec) -> Mat:
+        return self.linearise(x)[1]
+
+    def linearise(self, x: Vec) -> tuple[Vec, Mat]:
+        vbx, vby, bx, by, (wn, we) = self._parts(x)
+        vx = max(vbx, MIN_AIR_SPEED_M_S)
+        gx, gy = -vby / (vx * vx), 1.0 / vx                  # d(vb_y / vb_x) / d(vb_x, vb_y)
+        # d beta / d w (w = R_z(b) v_air): g_x * body_x + g_y * body_y, then through R_z(b) to v_air
+        dw = (gx * bx[0] + gy * by[0], gx * bx[1] + gy * by[1], gx * bx[2] + gy * by[2])
+        c, s = math.cos(x[_YB]), math.sin(x[_YB])
+        dn, de = c * dw[0] + s * dw[1], -s * dw[0] + c * dw[1]
+        H = np.zeros((1, S.dim))
+        H[0, _VN], H[0, _VE], H[0, _VD] = dn, de, dw[2]
+        H[0, _WN], H[0, _WE] = -dn, -de
+        H[0, _YB] = dw[0] * -we + dw[1] * wn               # d w / d yaw_bias = (-w_E, w_N, 0)
+        return np.array([vby / vx]), H
+
+    @staticmethod
+    def noise(cfg: EkfConfig) -> Mat:
+        return np.array([[cfg.sideslip_sigma_rad**2]])
+
+
+# --------------------------------------------------------------------------------------------------------------
+@dataclass(frozen=True, slots=True)
+class BaroAltitude:
+    """Barometric altitude above the reference ground (m): ``-pos_d + baro_bias``."""
+
+    def predict(self, x: Vec) -> Vec:
+        return np.array([-x[_PD] + x[_BB]])
+
+    def jacobian(self, x: Vec) -> Mat:
+        H = np.zeros((1, S.dim))
+        H[0, _PD] = -1.0
+        H[0, _BB] = 1.0
+        return H
+
+    def linearise(self, x: Vec) -> tuple[Vec, Mat]:
+        return self.predict(x), self.jacobian(x)
+
+    @staticmethod
+    def noise(cfg: EkfConfig) -> Mat:
+        return np.array([[cfg.baro_sigma_m**2]])
+
+
+# --------------------------------------------------------------------------------------------------------------
+@dataclass(frozen=True, slots=True)
+class GnssPosition:
+    """GNSS position in the local NED frame (m): ``pos_ne`` (``dim=2``) or ``pos_ne, pos_d`` (``dim=3``)."""
+
+    dim: int = 3
+
+    def predict(self, x: Vec) -> Vec:
+        return x[S.pos_ned][: self.dim].copy()
+
+    def jacobian(self, x: Vec) -> Mat:
+        H = np.zeros((self.dim, S.dim))
+        H[:, S.pos_ned][:, : self.dim] = np.eye(self.dim)
+        return H
+
+    def linearise(self, x: Vec) -> tuple[Vec, Mat]:
+        return self.predict(x), self.jacobian(x)
+
+    def noise(self, cfg: EkfConfig, sigma_ne_m: float | None = None, sigma_d_m: float | None = None) -> Mat:
+        """Diagonal covariance (m^2); the receiver's own accuracies replace the config's when given."""
+        s = [cfg.gnss_pos_ne_sigma_m if sigma_ne_m is None else sigma_ne_m] * 2
+        s.append(cfg.gnss_pos_d_sigma_m if sigma_d_m is None else sigma_d_m)
+        return np.diag(np.square(s[: self.dim]))
+
+
+@dataclass(frozen=True, slots=True)
+class GnssVelocity:
+    """GNSS ground velocity (m/s): ``vel_ne`` (``dim=2``, e.g. from ground speed and course) or ``vel_ned``."""
+
+    dim: int = 3
+
+    def predict(self, x: Vec) -> Vec:
+        return x[S.vel_ned][: self.dim].copy()
+
+    def jacobian(self, x: Vec) -> Mat:
+        H = np.zeros((self.dim, S.dim))
+        H[:, S.vel_ned][:, : self.dim] = np.eye(self.dim)
+        return H
+
+    def linearise(self, x: Vec) -> tuple[Vec, Mat]:
+        return self.predict(x), self.jacobian(x)
+
+    def noise(self, cfg: EkfConfig, sigma_ne_m_s: float | None = None, sigma_d_m_s: float | None = None) -> Mat:
+        s = [cfg.gnss_vel_ne_sigma_m_s if sigma_ne_m_s is None else sigma_ne_m_s] * 2
+        s.append(cfg.gnss_vel_d_sigma_m_s if sigma_d_m_s is None else sigma_d_m_s)
+        return np.diag(np.square(s[: self.dim]))
