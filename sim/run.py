@@ -60,6 +60,8 @@ MAX_FRAME_WAIT_US = 500_000
 # Wind figures compare with the total wind the aircraft flies in, averaged over this window (the turbulence's
 # long-wavelength part is real wind an estimator should follow; its fast part is not observable).
 WIND_TRUTH_WINDOW_S = 5.0
+# The dead-reckoning error is read this long before an outage ends (before a returning fix is fused).
+OUTAGE_END_GUARD_S = 0.5
 # NEES state: position N/E, velocity N/E, wind N/E.
 NEES_DOF = 6
 US_PER_S = 1_000_000
@@ -541,7 +543,8 @@ def _outage_metrics(E: dict[str, np.ndarray], T: dict[str, np.ndarray], outages:
     errs: list[np.ndarray] = []
     pct: list[float] = []
     for t0, t1 in outages:
-        sel = (E["t_s"] >= t0) & (E["t_s"] <= t1)
+        # up to just before the first returning fix is fused (the figure is the dead-reckoning error)
+        sel = (E["t_s"] >= t0) & (E["t_s"] < t1 - OUTAGE_END_GUARD_S)
         if sel.sum() < 2:
             continue
         tn = truth_n = np.interp(E["t_s"][sel], T["t_s"], T["n"])
