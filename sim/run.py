@@ -305,7 +305,8 @@ def run_flight(scn: Scenario, *, seed: int, duration_s: float | None = None, out
                     ekf = NavEkf(ekf_cfg, t_us=g.t_us, pos_ned_m=g.pos_ned_m, vel_ned_m_s=g.vel_ned_m_s)
                 elif ekf is not None:
                     if g.fix_ok:
-                        ekf.fuse_gnss(g.t_us, g.pos_ned_m, g.vel_ned_m_s)
+                        ekf.fuse_gnss(g.t_us, g.pos_ned_m, g.vel_ned_m_s, pos_sigma_ne_m=g.h_acc_m,
+                                      vel_sigma_ne_m_s=g.v_acc_m_s)
                 series.gnss["t_s"].append(g.t_us / US_PER_S)
                 series.gnss["n"].append(float(g.pos_ned_m[0]))
                 series.gnss["e"].append(float(g.pos_ned_m[1]))
@@ -483,9 +484,11 @@ def compute_metrics(series: _Series, outages: list[tuple[float, float]]) -> dict
             out[f"{prefix}wind_speed_rmse_m_s"] = M.rmse(ws[settled] - true_ws)
             out[f"{prefix}wind_speed_rmse_vs_steady_m_s"] = M.rmse(
                 ws[settled] - np.interp(t_q[settled], T["t_s"], steady_speed))
+            out[f"{prefix}wind_speed_mae_m_s"] = float(np.mean(np.abs(ws[settled] - true_ws)))
             strong = true_ws >= 1.0
-            out[f"{prefix}wind_dir_rmse_deg"] = M.rmse(np.degrees(np.asarray(
-                angle_diff(wd[settled][strong], true_wd[strong])))) if strong.any() else math.nan
+            dir_err = np.degrees(np.asarray(angle_diff(wd[settled][strong], true_wd[strong])))
+            out[f"{prefix}wind_dir_rmse_deg"] = M.rmse(dir_err) if strong.any() else math.nan
+            out[f"{prefix}wind_dir_mae_deg"] = float(np.mean(np.abs(dir_err))) if strong.any() else math.nan
         else:
             out[f"{prefix}wind_speed_rmse_m_s"] = math.nan
             out[f"{prefix}wind_dir_rmse_deg"] = math.nan

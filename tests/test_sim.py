@@ -6,10 +6,11 @@ import json
 
 import numpy as np
 import pytest
+from scipy.ndimage import uniform_filter1d
 
 from nav.cli import main
 from nav.logio import read_log
-from sim.run import run_flight
+from sim.run import WIND_TRUTH_WINDOW_S, run_flight
 from sim.scenario import load_scenario, scenario_with_overrides
 
 EXPECTED_FILES = ("metrics.json", "report.html", "trajectory.png", "altitude_airspeed.png", "sample_distance.png",
@@ -72,3 +73,74 @@ def test_same_seed_same_flight():
     c = run_flight(scn, seed=12, duration_s=8.0)
     assert a["drift_mae_deg"] == b["drift_mae_deg"] and a["sensor_errors"] == b["sensor_errors"]
     assert a["sensor_errors"] != c["sensor_errors"]
+
+
+def test_short_paper_sil_ekf_acceptance(short_run):
+    """Issue 4 on a short paper_sil run: the EKF beats the paper's chain on drift, holds the wind after the first
+    turns, covers the headings flown and is consistent (NEES of position, velocity and wind)."""
+    m = json.loads((short_run / "metrics.json").read_text())
+    assert m["drift_mae_deg"] <= 0.5
+    assert m["drift_mae_deg"] < m["baseline_drift_mae_deg"]
+    # error of the wind after the first minute (turns) against the total wind averaged over 5 s
+    assert m["wind_speed_mae_m_s"] <= 0.5
+    assert m["wind_dir_mae_deg"] <= 10.0
+    assert m["heading_coverage"] >= 0.95
+    assert m["nees_in_bounds_frac"] >= 0.8
+
+
+def _arrays(folder):
+    return read_log(folder / "ekf.csv"), read_log(folder / "truth.csv")
+
+
+HARD = [
+    ("strong_wind", {}),
+    ("low_texture", {"terrain.texture": "water", "sensors.gnss.outages": [{"start_s": 40.0, "length_s": 200.0}]}),
+]
+
+
+@pytest.fixture(scope="module", params=HARD, ids=[h[0] for h in HARD])
+def hard_run(request, tmp_path_factory):
+    name, overrides = request.param
+    out = tmp_path_factory.mktemp(name)
+    m = run_flight(scenario_with_overrides(load_scenario(name), overrides), seed=2, duration_s=100.0, out_dir=out)
+    ekf, truth = read_log(out / "ekf.csv"), read_log(out / "truth.csv")
+    return name, m, ekf, truth
+
+
+def test_hard_scenarios_no_nan_and_invalid_flagged(hard_run):
+    name, m, ekf, truth = hard_run
+    assert not m["crashed"]
+    valid = ekf["valid"] > 0.5
+    for key in ("pos_n_m", "pos_e_m", "vel_n_m_s", "vel_e_m_s", "wind_n_m_s", "wind_e_m_s", "drift_rad",
+                "drift_sigma_rad", "wind_n_sigma_m_s"):
+        assert np.all(np.isfinite(ekf[key][valid])), key
+    t = ekf["t_us"]
+    if name == "low_texture":
+        # over water with GNSS lost the optical aid is gone: the drift's sigma grows, and the estimate says so
+        before = (t > 20e6) & (t < 40e6)
+        during = (t > 60e6) & (t < 100e6)
+        assert np.median(ekf["drift_sigma_rad"][during]) > 1.5 * np.median(ekf["drift_sigma_rad"][before])
+
+
+@pytest.mark.xfail(strict=False, reason="known gap: in moderate turbulence and gusts the EKF's random-walk wind is "
+                   "over-confident (RMS error/sigma 2-3); see the closing note of the fusion issue")
+def test_hard_scenarios_wind_error_bounded_by_sigma(hard_run):
+    name, m, ekf, truth = hard_run
+    valid = ekf["valid"] > 0.5
+    t = ekf["t_us"]
+    late = valid & (t > 30e6)
+    # against the total wind averaged over WIND_TRUTH_WINDOW_S (as the metrics): the fast turbulence is not
+    # observable through the wind triangle
+    win = int(round(WIND_TRUTH_WINDOW_S / np.median(np.diff(truth["t_us"] * 1e-6))))
+    for key, sig in (("wind_n_m_s", "wind_n_sigma_m_s"), ("wind_e_m_s", "wind_e_sigma_m_s")):
+        smooth = uniform_filter1d(truth[key], win, mode="nearest")
+        err = ekf[key][late] - np.interp(t[late], truth["t_us"], smooth)
+        assert np.mean(np.abs(err) <= 3.0 * ekf[sig][late]) >= 0.9, key
+
+
+def test_ten_minute_gnss_outage_dead_reckoning_within_two_percent():
+    scn = scenario_with_overrides(load_scenario("gnss_outage"),
+                                  {"sensors.gnss.outages": [{"start_s": 100.0, "length_s": 600.0}]})
+    m = run_flight(scn, seed=5, duration_s=705.0)
+    assert m["dr_error_pct_of_distance"] <= 2.0
+    assert m["pos_error_m_max"] < 0.02 * 600 * 18.0
