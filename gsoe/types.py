@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -69,27 +70,34 @@ class GsoeStep:
 
 @dataclass(frozen=True, slots=True)
 class AirspeedSample:
-    """Pitot true airspeed at ``t_us``."""
+    """Airspeed at ``t_us``: true airspeed ``tas_m_s`` (what the EKF fuses) and, where a log gives it, the
+    equivalent airspeed ``eas_m_s`` it was derived from (``nan`` otherwise)."""
 
     t_us: int
     tas_m_s: float
+    eas_m_s: float = math.nan
 
 
 @dataclass(frozen=True, slots=True)
 class BaroSample:
-    """Barometric height above the mission's reference point at ``t_us`` (positive up)."""
+    """Barometric altitude at ``t_us`` (m, up).  In the simulator it is the height above the mission's reference
+    point plus the baro's errors; from a flight log it is the ISA pressure altitude of ``pressure_pa`` (the datum
+    is not the ground: only its changes matter and the EKF estimates the offset)."""
 
     t_us: int
     alt_m: float
+    pressure_pa: float = math.nan
 
 
 @dataclass(frozen=True, slots=True)
 class GnssSample:
-    """GNSS fix at ``t_us``: NED position relative to the reference point and NED velocity.
+    """GNSS fix at ``t_us``: NED position relative to the local origin (the reference point, or a log's first
+    3-D fix) and NED ground velocity.
 
-    Without a fix (``fix_ok`` false, e.g. in an outage) the position and velocity are NaN, ``n_sats`` is 0 and the
-    accuracies are infinite.  ``h_acc_m`` / ``v_acc_m_s`` are the receiver's 1-sigma accuracy estimates of one
-    horizontal position axis and one velocity axis.
+    Without a fix (``fix_ok`` false, e.g. in an outage) the position and velocity are NaN.  ``h_acc_m`` /
+    ``v_acc_m_s`` are the receiver's 1-sigma accuracies of one horizontal position axis and one velocity axis
+    (``nan`` when unknown, ``inf`` without a fix); ``n_sats`` is -1 when unknown.  ``lat_deg``, ``lon_deg``,
+    ``alt_msl_m`` are the fix as logged (``nan`` in the simulator).  Components a source does not give are NaN.
     """
 
     t_us: int
@@ -97,5 +105,8 @@ class GnssSample:
     vel_ned_m_s: NDArray[np.float64]
     fix_ok: bool
     n_sats: int
-    h_acc_m: float
-    v_acc_m_s: float
+    h_acc_m: float = math.nan
+    v_acc_m_s: float = math.nan
+    lat_deg: float = math.nan
+    lon_deg: float = math.nan
+    alt_msl_m: float = math.nan

@@ -71,7 +71,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from gsoe.angles import wrap_2pi, wrap_pi
-from gsoe.types import AttitudeSample, ImuSample
+from gsoe.types import AirspeedSample, AttitudeSample, BaroSample, GnssSample, ImuSample
 
 log = logging.getLogger(__name__)
 
@@ -103,50 +103,7 @@ SUFFIXES = {".tlog": "tlog", ".bin": "dataflash", ".ulg": "ulog"}
 
 
 # --------------------------------------------------------------------------------------------------------------
-# Samples
-
-
-@dataclass(frozen=True, slots=True)
-class AirspeedSample:
-    """Airspeed at ``t_us``: true airspeed ``tas_m_s`` (what the EKF fuses) and the equivalent airspeed
-    ``eas_m_s`` it was derived from (``nan`` when the log gives TAS only)."""
-
-    t_us: int
-    tas_m_s: float
-    eas_m_s: float
-
-
-@dataclass(frozen=True, slots=True)
-class BaroSample:
-    """Barometer at ``t_us``: ``alt_m`` is the ISA pressure altitude (m, up positive, datum 1013.25 hPa) of the
-    static pressure ``pressure_pa``.  Only changes of ``alt_m`` are meaningful for navigation (the datum is not
-    the ground or the GNSS origin; the EKF estimates the offset)."""
-
-    t_us: int
-    alt_m: float
-    pressure_pa: float
-
-
-@dataclass(frozen=True, slots=True)
-class GnssSample:
-    """GNSS fix at ``t_us``.
-
-    ``pos_ned_m`` is the antenna position in the log's local NED frame, whose origin is the first 3-D fix
-    (:attr:`ReadReport.origin_lat_deg` ...), by a flat-earth conversion with the WGS-84 radii of curvature at the
-    origin.  ``vel_ned_m_s`` is the ground velocity; components the source does not give are ``nan`` (the down
-    component from MAVLink GPS_RAW_INT, everything when its speed or course is "unknown").  ``fix_ok`` is a 3-D
-    fix or better; without it position and velocity are ``nan``.  ``n_sats`` is -1 when unknown.  ``lat_deg``,
-    ``lon_deg``, ``alt_msl_m`` are the fix as logged.
-    """
-
-    t_us: int
-    pos_ned_m: NDArray[np.float64]
-    vel_ned_m_s: NDArray[np.float64]
-    fix_ok: bool
-    n_sats: int
-    lat_deg: float
-    lon_deg: float
-    alt_msl_m: float
+# Samples (AirspeedSample, BaroSample, GnssSample, ImuSample, AttitudeSample are gsoe.types')
 
 
 @dataclass(frozen=True, slots=True)
