@@ -144,3 +144,29 @@ def test_ten_minute_gnss_outage_dead_reckoning_within_two_percent():
     m = run_flight(scn, seed=5, duration_s=705.0)
     assert m["dr_error_pct_of_distance"] <= 2.0
     assert m["pos_error_m_max"] < 0.02 * 600 * 18.0
+
+
+def test_ctrl_c_leaves_a_readable_partial_log(tmp_path):
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    proc = subprocess.Popen([sys.executable, "-m", "nav.cli", "sim", "--duration", "600", "--out", str(tmp_path),
+                             "--no-progress"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        deadline = time.monotonic() + 120.0
+        while not (tmp_path / "gsoe.csv").exists() and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.2)
+        time.sleep(2.0)
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, out
+    assert "interrupted" in out
+    m = json.loads((tmp_path / "metrics.json").read_text())
+    assert m["interrupted"] is True and 0 < m["sim_s"] < 600
+    truth = read_log(tmp_path / "truth.csv")
+    assert truth["t_us"].size > 10 and np.all(np.isfinite(truth["t_us"]))
