@@ -97,7 +97,7 @@ class CameraModel:
             img, _ = cv2.fisheye.projectPoints(obj, _ZERO3, _ZERO3, self.K, self.D)
         else:
             img, _ = cv2.projectPoints(obj, _ZERO3, _ZERO3, self.K, self.D)
-        px = img.reshape(-1, 2)
+        px: NDArray[np.float64] = np.asarray(img, dtype=np.float64).reshape(-1, 2)
         w, h = self.size_px
         if px[:, 0].min() < -0.5 or px[:, 1].min() < -0.5 or px[:, 0].max() > w - 0.5 or px[:, 1].max() > h - 0.5:
             return None
