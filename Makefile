@@ -9,6 +9,8 @@ $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
 	$(VENV)/bin/python -m pip install --quiet --upgrade pip
 	$(VENV)/bin/python -m pip install --quiet -e '.[dev]'
+	# MAVProxy for the ground-station module: without its deps (they pull the non-headless OpenCV)
+	$(VENV)/bin/python -m pip install --quiet --no-deps MAVProxy pyserial
 	touch $(STAMP)
 
 sim: $(STAMP)

@@ -5,7 +5,9 @@
 opens), or ``sim://127.0.0.1:PORT`` for the simulator's frame stream (``python -m sim.mavlink_vehicle``).
 ``--target-px X,Y`` designates a target to track and fly to (video-tracking guidance); a ground station can
 designate one later over ``--gcs URL`` (COMMAND_LONG MAV_CMD_USER_1, param1/param2 = pixel), signed with
-``--signing-key FILE`` (then unsigned commands are refused).
+``--signing-key FILE`` (then unsigned commands are refused).  ``--set DOTTED.KEY=VALUE`` (repeatable) overrides one
+value of the ``[companion]`` or ``[ekf]`` tables of the configuration file, written as in TOML
+(``--set companion.guidance.correct_drift=false``, ``--set 'companion.tracking.source="mavlink"'``).
 Stops cleanly on SIGINT/SIGTERM; ``kill -9`` loses at most the last ``[companion] log_flush_s`` of the log.
 """
 
@@ -16,7 +18,9 @@ import json
 import logging
 import signal
 import time
+import tomllib
 from pathlib import Path
+from typing import Any
 
 log = logging.getLogger(__name__)
 
@@ -29,6 +33,30 @@ def _pair(text: str) -> tuple[float, float]:
     return a, b
 
 
+def _setting(text: str) -> tuple[list[str], Any]:
+    key, sep, value = text.partition("=")
+    if not sep or not key.strip():
+        raise argparse.ArgumentTypeError(f"expected DOTTED.KEY=VALUE, got {text!r}")
+    try:
+        parsed = tomllib.loads(f"v = {value}")["v"]
+    except tomllib.TOMLDecodeError:
+        raise argparse.ArgumentTypeError(f"{key}: {value!r} is not a TOML value (strings need quotes)") from None
+    return key.strip().split("."), parsed
+
+
+def apply_settings(raw: dict[str, Any], settings: list[tuple[list[str], Any]]) -> dict[str, Any]:
+    """``raw`` with each ``(path, value)`` set (tables created as needed); validation happens when it is built."""
+    for path, value in settings:
+        node = raw
+        for part in path[:-1]:
+            nxt = node.setdefault(part, {})
+            if not isinstance(nxt, dict):
+                raise argparse.ArgumentTypeError(f"--set {'.'.join(path)}: {part} is not a table")
+            node = nxt
+        node[path[-1]] = value
+    return raw
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--connect", required=True, help="MAVSDK connection URL, e.g. udpin://0.0.0.0:14540")
     parser.add_argument("--camera", required=True, help="camera index, file, GStreamer/RTSP URL or sim://HOST:PORT")
@@ -38,6 +66,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--gcs", help="the companion's own link for ground-station commands (pymavlink URL)")
     parser.add_argument("--signing-key", help="MAVLink 2 signing key file for --gcs (unsigned commands refused)")
     parser.add_argument("--duration-s", type=float, help="stop after this long (default: run until stopped)")
+    parser.add_argument("--set", type=_setting, action="append", default=[], dest="settings",
+                        help="override a configuration value: DOTTED.KEY=TOML_VALUE (repeatable)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -45,6 +75,7 @@ def run(args: argparse.Namespace) -> int:
     from nav.configfile import load_gsoe_config
 
     gsoe_cfg, raw = load_gsoe_config(args.config)
+    raw = apply_settings(raw, args.settings)
     log_dir = args.log_dir or str(Path("logs") / time.strftime("companion-%Y%m%dT%H%M%SZ", time.gmtime()))
     key = None
     if args.signing_key:

@@ -4,18 +4,27 @@ One synchronous loop (the link's asyncio runs in its own thread, the camera read
 
 1. drain the link's validated telemetry samples: attitude and IMU go to the optical estimator's attitude buffer
    and to the EKF's prediction, airspeed and baro to the EKF, GNSS to the :class:`GnssMonitor` and, while the
-   monitor says ``GNSS_OK``, to the EKF;
+   monitor says ``GNSS_OK``, to the EKF; an external tracker's reports go to the guidance;
 2. take the newest camera frame (stamped at capture minus ``camera_latency_s`` on the companion's clock, or, for
    the simulator's stream, at its exposure time mapped from the vehicle's clock); reject unusable frames (None,
-   wrong size, wrong type, corrupt) with a counted, logged reason;
+   wrong size, wrong type, frozen: identical to the previous one, stamp not increasing) with a counted, logged
+   reason; hold it until attitude and IMU samples cover its exposure time (at most ``attitude_wait_s``, then the
+   attitude buffer extrapolates), so that attitude is matched to the exposure;
 3. run the optical estimator on it (attitude interpolated to the exposure time), fuse its steps in the EKF;
-4. send the EKF's estimate to the autopilot while it is valid (:func:`nav.link.check_estimate` says why not);
-5. track the designated target and send the heading command (:mod:`nav.guidance`);
+4. send the EKF's estimate to the autopilot (after every frame, and between frames at the fastest output rate)
+   while it is valid (:func:`nav.link.check_estimate` says why not; an
+   estimate older than ``max_estimate_age_s``, e.g. while no IMU arrives, is invalid), announce every change of
+   validity (STATUSTEXT, at most one per ``announce_min_interval_s``; the ``GSOE_VALID`` named value carries the
+   live state);
+5. track the designated target (the belly camera's template tracker, or an external tracker over MAVLink,
+   ``[companion.tracking]``) and send the heading command (:mod:`nav.guidance`);
 6. log every input, estimate and output through :class:`nav.logio.RunLog` (append-only, flushed at least every
-   ``log_flush_s`` <= 1 s, so ``kill -9`` loses at most that).
+   ``log_flush_s`` <= 1 s, so ``kill -9`` loses at most that), and every state change (camera lost/opened, link
+   lost/restored, estimate valid/invalid with its reason, telemetry rejected, GNSS state) to ``events.csv``.
 
-Nothing in the loop may end it except a stop request: bad frames, bad telemetry, a dead link (retried every
-``reconnect_s``) and estimator exceptions are counted, logged and survived.
+Nothing in the loop may end it except a stop request: bad frames, bad telemetry, a dead link (MAVSDK reconnects by
+itself; the first connection is retried every ``reconnect_s``), a lost camera (reopened every
+``camera_reconnect_s``) and estimator exceptions are counted, logged and survived.
 """
 
 from __future__ import annotations
@@ -25,11 +34,13 @@ import logging
 import math
 import queue
 import socket
+import struct
 import threading
 import time
+import zlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import cv2
 import numpy as np
@@ -39,7 +50,7 @@ from gsoe.camera import CameraModel
 from gsoe.config import ConfigError, GsoeConfig, build, in_range
 from gsoe.types import AttitudeSample, GsoeStep, ImuSample
 from nav.gnss_monitor import Consistency, GnssMonitor, GnssMonitorConfig, GnssState
-from nav.guidance import GuidanceConfig, TargetGuidance, change_heading_command_fields
+from nav.guidance import GuidanceConfig, TargetGuidance, change_heading_command_fields, forward_camera
 from nav.link import (
     AirspeedReading,
     BaroReading,
@@ -48,10 +59,11 @@ from nav.link import (
     HomeReading,
     LinkConfig,
     OutputEstimate,
+    TrackReading,
     now_us,
 )
 from nav.logio import RunLog
-from nav.tracker import TemplateTracker, TemplateTrackerConfig
+from nav.tracker import ExternalTracker, TemplateTracker, TemplateTrackerConfig
 
 log = logging.getLogger(__name__)
 
@@ -60,6 +72,30 @@ FRAME_MAGIC = b"GSOF"  # the simulator's frame stream (sim.mavlink_vehicle docum
 FRAME_HEADER_SIZE = 24
 MAV_CMD_USER_1 = 31010  # ground station -> companion: designate the target at pixel (param1, param2)
 QUALITY_WINDOW_STEPS = 30  # optical quality = fraction of valid matches over this many steps (about 1 s)
+STATUSTEXT_MAX_CHARS = 50
+MAX_FRAME_SIDE_PX = 16384
+
+
+@dataclass(frozen=True)
+class TrackingConfig:
+    """``[companion.tracking]``: where the target's pixel comes from and which camera it refers to.
+
+    ``source``: ``"camera"`` (the default template tracker on the companion's own camera frames, designated with
+    ``--target-px`` or by the ground station) or ``"mavlink"`` (an external video tracker's
+    CAMERA_TRACKING_IMAGE_STATUS, :class:`nav.tracker.ExternalTracker`).  ``mount``: the camera the pixel belongs
+    to: ``"belly"`` (the calibrated camera as mounted) or ``"forward"`` (the same lens looking forward,
+    ``forward_depression_deg`` below the body x axis, :func:`nav.guidance.forward_camera`).  ``max_age_s``: an
+    external tracker's report older than this is not used.
+    """
+
+    source: Literal["camera", "mavlink"] = "camera"
+    mount: Literal["belly", "forward"] = "belly"
+    forward_depression_deg: float = 10.0
+    max_age_s: float = 0.5
+
+    def __post_init__(self) -> None:
+        in_range(self.forward_depression_deg, -45.0, 89.0, "forward_depression_deg")
+        in_range(self.max_age_s, 0.0, 60.0, "max_age_s", lo_open=True)
 
 
 @dataclass(frozen=True)
@@ -82,10 +118,15 @@ class CompanionConfig:
     max_frame_age_s: float = 0.5
     use_ekf: bool = True
     ekf_init_wait_s: float = 10.0
+    camera_reconnect_s: float = 0.5
+    attitude_wait_s: float = 0.05
+    max_estimate_age_s: float = 0.5
+    announce_min_interval_s: float = 2.0
     link: LinkConfig = field(default_factory=LinkConfig)
     gnss: GnssMonitorConfig = field(default_factory=GnssMonitorConfig)
     guidance: GuidanceConfig = field(default_factory=GuidanceConfig)
     tracker: TemplateTrackerConfig = field(default_factory=TemplateTrackerConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
 
     def __post_init__(self) -> None:
         in_range(self.camera_latency_s, 0.0, 5.0, "camera_latency_s")
@@ -95,6 +136,10 @@ class CompanionConfig:
         in_range(self.status_s, 0.1, 3600.0, "status_s")
         in_range(self.max_frame_age_s, 0.01, 60.0, "max_frame_age_s")
         in_range(self.ekf_init_wait_s, 0.0, 3600.0, "ekf_init_wait_s")
+        in_range(self.camera_reconnect_s, 0.01, 600.0, "camera_reconnect_s")
+        in_range(self.attitude_wait_s, 0.0, 5.0, "attitude_wait_s")
+        in_range(self.max_estimate_age_s, 0.01, 60.0, "max_estimate_age_s")
+        in_range(self.announce_min_interval_s, 0.0, 3600.0, "announce_min_interval_s")
 
 
 def companion_config_from_raw(raw: dict[str, Any]) -> CompanionConfig:
@@ -123,13 +168,12 @@ class SimFrameClient:
         return bytes(buf)
 
     def read(self) -> tuple[int, NDArray[np.uint8]] | None:
-        import struct
-
+        """The next frame, or None when the stream ended; ``OSError`` on a corrupt header (reconnect to resync)."""
         head = self._exact(FRAME_HEADER_SIZE)
         if head is None:
             return None
         magic, t_us, w, h, ch = struct.unpack("<4sqIIi", head)
-        if magic != FRAME_MAGIC or not (0 < w <= 16384 and 0 < h <= 16384 and ch in (1, 3)):
+        if magic != FRAME_MAGIC or not (0 < w <= MAX_FRAME_SIDE_PX and 0 < h <= MAX_FRAME_SIDE_PX and ch in (1, 3)):
             raise OSError("corrupt frame stream header")
         data = self._exact(w * h * ch)
         if data is None:
@@ -146,7 +190,8 @@ class CameraThread:
 
     ``source``: a device index (``"0"``), a file, a GStreamer pipeline or RTSP URL (anything ``cv2.VideoCapture``
     opens), or ``sim://HOST:PORT``.  ``latest()`` returns ``(t_us, frame, from_vehicle_clock, captured_us)``:
-    the exposure time, the image, whether ``t_us`` is on the vehicle's clock, and when the frame was read.
+    the exposure time, the image, whether ``t_us`` is on the vehicle's clock, and when the frame was read.  A lost
+    camera is reopened every ``camera_reconnect_s``; openings and losses are queued in :attr:`events`.
     """
 
     def __init__(self, source: str, cfg: CompanionConfig, clock: Callable[[], int] = now_us) -> None:
@@ -154,6 +199,7 @@ class CameraThread:
         self.cfg = cfg
         self.clock = clock
         self._slot: queue.Queue[tuple[int, Any, bool, int]] = queue.Queue(maxsize=1)
+        self.events: queue.Queue[tuple[int, str]] = queue.Queue()
         self._stop = threading.Event()
         self.frames = 0
         self.failures = 0
@@ -173,18 +219,24 @@ class CameraThread:
         return cap
 
     def _run(self) -> None:
+        reported = False
         while not self._stop.is_set():
             try:
                 cap = self._open()
-            except OSError as e:
+            except (OSError, ValueError) as e:
                 self.failures += 1
-                log.warning("camera %s: %s; retrying in %.1f s", self.source, e, self.cfg.reconnect_s)
-                self._stop.wait(self.cfg.reconnect_s)
+                if not reported:
+                    log.warning("camera %s: %s; retrying every %.1f s", self.source, e, self.cfg.camera_reconnect_s)
+                    self.events.put((self.clock(), f"cannot open: {e}"))
+                    reported = True
+                self._stop.wait(self.cfg.camera_reconnect_s)
                 continue
+            reported = False
             self.opened = True
             log.info("camera %s opened", self.source)
+            self.events.put((self.clock(), "opened"))
             try:
-                self._read_loop(cap)
+                why = self._read_loop(cap)
             finally:
                 self.opened = False
                 if isinstance(cap, SimFrameClient):
@@ -192,38 +244,40 @@ class CameraThread:
                 else:
                     cap.release()
             if not self._stop.is_set():
-                log.warning("camera %s lost; reopening in %.1f s", self.source, self.cfg.reconnect_s)
-                self._stop.wait(self.cfg.reconnect_s)
+                log.warning("camera %s lost (%s); reopening every %.1f s", self.source, why,
+                            self.cfg.camera_reconnect_s)
+                self.events.put((self.clock(), f"lost: {why}"))
+                self._stop.wait(self.cfg.camera_reconnect_s)
 
-    def _read_loop(self, cap: Any) -> None:
+    def _read_loop(self, cap: Any) -> str:
         latency_us = int(self.cfg.camera_latency_s * 1e6)
         while not self._stop.is_set():
             try:
                 if isinstance(cap, SimFrameClient):
                     got = cap.read()
                     if got is None:
-                        return
+                        return "stream closed"
                     item: tuple[int, Any, bool, int] = (got[0], got[1], True, self.clock())
                 else:
                     ok, frame = cap.read()
                     got_us = self.clock()
                     if not ok:
-                        return
+                        return "no frame from cv2.VideoCapture"
                     item = (got_us - latency_us, frame, False, got_us)
             except (OSError, cv2.error, ValueError) as e:
                 self.failures += 1
-                log.warning("camera read failed: %s", e)
-                return
+                return f"read failed: {e}"
             self.frames += 1
             try:
                 self._slot.get_nowait()
             except queue.Empty:
                 pass
             self._slot.put_nowait(item)
+        return "stopped"
 
     def latest(self, timeout_s: float) -> tuple[int, Any, bool, int] | None:
         try:
-            return self._slot.get(timeout=timeout_s)
+            return self._slot.get(timeout=timeout_s) if timeout_s > 0 else self._slot.get_nowait()
         except queue.Empty:
             return None
 
@@ -262,26 +316,21 @@ class Estimator:
     the baro; its position sigma then says how little is known.  Until then the estimate is invalid and not sent.
     """
 
-    def __init__(self, gsoe_cfg: GsoeConfig, camera: CameraModel, raw: dict[str, Any], cfg: CompanionConfig) -> None:
+    def __init__(self, gsoe_cfg: GsoeConfig, camera: CameraModel, raw: dict[str, Any], cfg: CompanionConfig,
+                 clock: Callable[[], int] = now_us) -> None:
+        from gsoe.cycle import GsoeEstimator
+
         self.cfg = cfg
-        self.gsoe: Any = None
-        try:
-            from gsoe.cycle import GsoeEstimator
-        except ImportError as e:  # a broken install must still log telemetry and announce GNSS state
-            log.error("optical estimator not available (%s): no optical steps", e)
-        else:
-            self.gsoe = GsoeEstimator(gsoe_cfg, camera)
+        self.clock = clock
+        self.gsoe = GsoeEstimator(gsoe_cfg, camera)
         self.ekf: Any = None
         self.ekf_cfg: Any = None
         self.why_no_ekf = "EKF disabled in [companion]"
         if cfg.use_ekf:
-            try:
-                from fusion.config import ekf_config_from_raw
-            except ImportError as e:
-                self.why_no_ekf = f"EKF not available ({e})"
-            else:
-                self.ekf_cfg = ekf_config_from_raw(raw)
-                self.why_no_ekf = "EKF waiting for a GNSS fix"
+            from fusion.config import ekf_config_from_raw
+
+            self.ekf_cfg = ekf_config_from_raw(raw)
+            self.why_no_ekf = "EKF waiting for a GNSS fix"
         self._att: AttitudeSample | None = None
         self._tas: float = math.nan
         self._baro_alt: float = math.nan
@@ -289,6 +338,8 @@ class Estimator:
         self._start_us: int | None = None
         self._recent_valid: list[bool] = []
         self.last_estimate: Any = None
+        self.newest_att_us = -1
+        self.newest_imu_us = -1
 
     # ---------------------------------------------------------------- EKF construction
     def _build(self, t_us: int, pos_ned: NDArray[np.float64], vel_ned: NDArray[np.float64], how: str) -> None:
@@ -317,15 +368,19 @@ class Estimator:
 
     # ---------------------------------------------------------------- inputs
     def attitude(self, s: AttitudeSample) -> None:
-        if self.gsoe is not None:
-            self.gsoe.push_attitude(s)
+        if self.gsoe.push_attitude(s):
+            self.newest_att_us = max(self.newest_att_us, s.t_us)
         self._att = s
 
     def imu(self, s: ImuSample) -> None:
-        if self.gsoe is not None:
-            self.gsoe.push_imu(s)
+        if self.gsoe.push_imu(s):
+            self.newest_imu_us = max(self.newest_imu_us, s.t_us)
         if self.ekf is not None and self._att is not None:
             self.ekf.predict(s, self._att)
+
+    def covers(self, t_us: int) -> bool:
+        """Attitude and IMU samples reach the exposure time ``t_us``."""
+        return self.newest_att_us >= t_us and self.newest_imu_us >= t_us
 
     def airspeed(self, s: AirspeedReading) -> None:
         self._tas = s.tas_m_s
@@ -348,7 +403,7 @@ class Estimator:
         pos = np.array([r.pos_ne_m[0], r.pos_ne_m[1], -(s.alt_amsl_m - self.home_amsl_m)])
         vel = None if r.vel_ne_m_s is None else np.asarray(r.vel_ne_m_s, dtype=float)
         if self.ekf is None:
-            if self.ekf_cfg is not None and vel is not None:
+            if self.ekf_cfg is not None and vel is not None and self._att is not None:
                 self._build(r.t_us, pos, np.array([vel[0], vel[1], 0.0]), "the first GNSS fix")
             return
         hacc = r.hacc_m if math.isfinite(r.hacc_m) and r.hacc_m > 0 else None
@@ -357,8 +412,6 @@ class Estimator:
         self.ekf.fuse_gnss(r.t_us, pos, vel, pos_sigma_ne_m=hacc, pos_sigma_d_m=vacc, vel_sigma_ne_m_s=sacc)
 
     def frame(self, t_us: int, gray: NDArray[np.uint8]) -> list[GsoeStep]:
-        if self.gsoe is None:
-            return []
         h = self.last_estimate.height_agl_m if self.last_estimate is not None else self._height_from_baro()
         steps = self.gsoe.process_frame(t_us, gray, float(h))
         for st in steps:
@@ -375,38 +428,56 @@ class Estimator:
         return self.last_estimate
 
     def consistency(self) -> Consistency | None:
+        """What the EKF and air data expect of a GNSS report now (position jump and velocity checks)."""
         e = self.last_estimate
         if e is None:
             return None
-        return Consistency(pred_pos_ne_m=np.asarray(e.pos_ne_m, dtype=float)[:2],
-                           pred_pos_sigma_m=float(np.max(np.asarray(e.pos_ne_sigma_m, dtype=float)[:2])))
+        pos_sigma = float(np.max(np.asarray(e.pos_ne_sigma_m, dtype=float)[:2]))
+        air_vel = None
+        air_sigma = 0.0
+        if self._att is not None and math.isfinite(self._tas) and self.ekf_cfg is not None:
+            yaw = self._att.yaw_rad - float(e.yaw_bias_rad)
+            air_vel = (self._tas * np.array([math.cos(yaw), math.sin(yaw)])
+                       + np.asarray(e.wind_ne_m_s, dtype=float)[:2])
+            air_sigma = math.sqrt(float(np.max(np.asarray(e.wind_ne_sigma_m_s, dtype=float)[:2])) ** 2
+                                  + self.ekf_cfg.tas_sigma_m_s ** 2 + (self._tas * float(e.heading_sigma_rad)) ** 2)
+        return Consistency(pred_pos_ne_m=np.asarray(e.pos_ne_m, dtype=float)[:2], pred_pos_sigma_m=pos_sigma,
+                           air_vel_ne_m_s=air_vel, air_vel_sigma_m_s=air_sigma)
 
     @property
     def quality(self) -> float:
         """Fraction of valid optical matches over the last :data:`QUALITY_WINDOW_STEPS` steps."""
         return float(np.mean(self._recent_valid)) if self._recent_valid else 0.0
 
-    def output(self, t_us: int, gnss_state: GnssState) -> OutputEstimate:
+    def output(self, gnss_state: GnssState) -> OutputEstimate:
         e = self.last_estimate
         if e is None:
             nan = math.nan
             z2 = np.full(2, nan)
-            return OutputEstimate(t_us, False, nan, nan, nan, z2, np.full((2, 2), nan), z2, np.full((2, 2), nan),
-                                  nan, self.quality, int(gnss_state), reason=self.why_no_ekf)
-        return estimate_to_output(e, int(gnss_state), self.quality)
+            return OutputEstimate(self.clock(), False, nan, nan, nan, z2, np.full((2, 2), nan), z2,
+                                  np.full((2, 2), nan), nan, self.quality, int(gnss_state), reason=self.why_no_ekf,
+                                  home_amsl_m=self.home_amsl_m)
+        out = estimate_to_output(e, int(gnss_state), self.quality, self.home_amsl_m)
+        age_s = (self.clock() - int(e.t_us)) / 1e6
+        if out.valid and age_s > self.cfg.max_estimate_age_s:
+            out = dataclasses.replace(out, valid=False, reason=f"estimate stale ({age_s:.1f} s old: no IMU)")
+        return out
 
 
-def estimate_to_output(e: Any, gnss_state: int, quality: float) -> OutputEstimate:
+def estimate_to_output(e: Any, gnss_state: int, quality: float, home_amsl_m: float = math.nan) -> OutputEstimate:
     """Map :class:`fusion.ekf.NavEstimate` onto what the link sends."""
     vel = np.asarray(e.vel_ned_m_s, dtype=float)
     vs = np.asarray(e.vel_ned_sigma_m_s, dtype=float)
     ws = np.asarray(e.wind_ne_sigma_m_s, dtype=float)
+    cov = np.asarray(e.cov_pvw, dtype=float)
+    vel_cov = cov[2:4, 2:4].copy() if cov.shape == (6, 6) else np.diag(vs[:2] ** 2)
+    wind_cov = cov[4:6, 4:6].copy() if cov.shape == (6, 6) else np.diag(ws[:2] ** 2)
     return OutputEstimate(
         t_us=int(e.t_us), valid=bool(e.valid), drift_rad=float(e.drift_rad), drift_sigma_rad=float(e.drift_sigma_rad),
-        ata_rad=float(e.ata_rad), vel_ne_m_s=vel[:2].copy(), vel_cov_ne=np.diag(vs[:2] ** 2),
-        wind_ne_m_s=np.asarray(e.wind_ne_m_s, dtype=float)[:2].copy(), wind_cov_ne=np.diag(ws[:2] ** 2),
+        ata_rad=float(e.ata_rad), vel_ne_m_s=vel[:2].copy(), vel_cov_ne=vel_cov,
+        wind_ne_m_s=np.asarray(e.wind_ne_m_s, dtype=float)[:2].copy(), wind_cov_ne=wind_cov,
         height_agl_m=float(e.height_agl_m), quality=quality, gnss_state=gnss_state, vel_d_m_s=float(vel[2]),
-        vel_d_var=float(vs[2] ** 2), reason=str(e.invalid_reason))
+        vel_d_var=float(vs[2] ** 2), reason=str(e.invalid_reason), home_amsl_m=home_amsl_m)
 
 
 # ------------------------------------------------------------------------------------------------ the app
@@ -420,6 +491,22 @@ class Counters:
     outputs_sent: int = 0
     outputs_suppressed: dict[str, int] = field(default_factory=dict)
     commands: int = 0
+    track_reports: int = 0
+
+
+@dataclass
+class _Pending:
+    t_us: int
+    frame: Any
+    gray: NDArray[np.uint8]
+    capture_us: int
+
+
+def tracking_camera(camera: CameraModel, cfg: TrackingConfig) -> CameraModel:
+    """The camera the tracker's pixels refer to (``[companion.tracking] mount``)."""
+    if cfg.mount == "forward":
+        return forward_camera(camera, math.radians(cfg.forward_depression_deg))
+    return camera
 
 
 class Companion:
@@ -434,8 +521,13 @@ class Companion:
         self.link = CompanionLink(connect_url, self.cfg.link)
         self.estimator = Estimator(gsoe_cfg, self.camera, raw, self.cfg)
         self.monitor = GnssMonitor(self.cfg.gnss)
-        self.guidance = TargetGuidance(self.camera, self.cfg.guidance)
-        self.tracker = TemplateTracker(self.cfg.tracker)
+        self.tracking_camera = tracking_camera(self.camera, self.cfg.tracking)
+        self.guidance = TargetGuidance(self.tracking_camera, self.cfg.guidance)
+        self.tracker: TemplateTracker | ExternalTracker
+        if self.cfg.tracking.source == "mavlink":
+            self.tracker = ExternalTracker(self.tracking_camera.size_px, self.cfg.tracking.max_age_s)
+        else:
+            self.tracker = TemplateTracker(self.cfg.tracker)
         self.target_px = target_px
         self.camera_thread = CameraThread(camera_source, self.cfg)
         self.counters = Counters()
@@ -443,6 +535,17 @@ class Companion:
         self._last_att: AttitudeSample | None = None
         self._last_suppress_log: dict[str, float] = {}
         self._link_thread: threading.Thread | None = None
+        self._pending: _Pending | None = None
+        self._last_frame_t_us: int | None = None
+        self._last_crc: int | None = None
+        self._was_valid: bool | None = None
+        self._last_announce = -math.inf
+        self._link_up: bool | None = None
+        self._rejected_seen: dict[str, int] = {}
+        self._guiding = False
+        self._last_output = -math.inf
+        lc = self.cfg.link
+        self._output_period_s = 1.0 / max(lc.named_values_hz, lc.vision_speed_hz, lc.wind_hz)
         self.gcs: Any = None
         if gcs_url:
             from nav.signing import CommandEndpoint
@@ -453,12 +556,22 @@ class Companion:
         """Write a record, numpy scalars as Python numbers (their repr is not a number in numpy 2)."""
         self.runlog.write(stream, {k: v.item() if isinstance(v, np.generic) else v for k, v in record.items()})
 
+    def _event(self, kind: str, detail: str, level: int = logging.INFO, t_us: int | None = None) -> None:
+        """A state change: logged and written to ``events.csv``."""
+        log.log(level, "%s: %s", kind, detail)
+        self._log("events", {"t_us": now_us() if t_us is None else t_us, "kind": kind, "detail": detail})
+
     def request_stop(self) -> None:
         self._stop.set()
 
     # ---------------------------------------------------------------- link management
     def _ensure_link(self) -> None:
-        if self.link.stats.connected or (self._link_thread is not None and self._link_thread.is_alive()):
+        up = self.link.stats.connected
+        if up != self._link_up:
+            if self._link_up is not None or up:
+                self._event("link", "connected" if up else "lost", logging.INFO if up else logging.WARNING)
+            self._link_up = up
+        if self._link_thread is not None and (self._link_thread.is_alive() or self.link.started):
             return
 
         def connect() -> None:
@@ -481,13 +594,13 @@ class Companion:
                     est.attitude(s)
                     self._last_att = s
                     self._log("attitude", {"t_us": s.t_us, "roll_rad": s.roll_rad, "pitch_rad": s.pitch_rad,
-                                                   "yaw_rad": s.yaw_rad})
+                                           "yaw_rad": s.yaw_rad})
                 elif isinstance(s, ImuSample):
                     est.imu(s)
                     g, a = s.gyro_b_rad_s, s.accel_b_m_s2
                     self._log("imu", {"t_us": s.t_us, "gyro_x_rad_s": g[0], "gyro_y_rad_s": g[1],
-                                              "gyro_z_rad_s": g[2], "accel_x_m_s2": a[0], "accel_y_m_s2": a[1],
-                                              "accel_z_m_s2": a[2]})
+                                      "gyro_z_rad_s": g[2], "accel_x_m_s2": a[0], "accel_y_m_s2": a[1],
+                                      "accel_z_m_s2": a[2]})
                 elif isinstance(s, AirspeedReading):
                     est.airspeed(s)
                     self._log("airspeed", {"t_us": s.t_us, "tas_m_s": s.tas_m_s})
@@ -498,6 +611,8 @@ class Companion:
                     self._gnss(s)
                 elif isinstance(s, HomeReading):
                     est.home(s)
+                elif isinstance(s, TrackReading):
+                    self._track_report(s)
             except Exception as e:  # the estimators must not take the loop down
                 self.counters.estimator_errors += 1
                 log.exception("estimator failed on %s: %s", type(s).__name__, e)
@@ -509,20 +624,30 @@ class Companion:
         pos = r.pos_ne_m if r.pos_ne_m is not None else (math.nan, math.nan)
         vel = r.vel_ne_m_s if r.vel_ne_m_s is not None else (math.nan, math.nan)
         self._log("gnss", {"t_us": r.t_us, "fix_type": r.fix_type, "satellites": r.satellites,
-                                   "hacc_m": r.hacc_m, "pos_n_m": pos[0], "pos_e_m": pos[1],
-                                   "vel_n_m_s": vel[0], "vel_e_m_s": vel[1], "lat_deg": s.lat_deg,
-                                   "lon_deg": s.lon_deg, "alt_amsl_m": s.alt_amsl_m,
-                                   "state": int(self.monitor.state), "level": int(self.monitor.last_level)})
+                           "hacc_m": r.hacc_m, "pos_n_m": pos[0], "pos_e_m": pos[1],
+                           "vel_n_m_s": vel[0], "vel_e_m_s": vel[1], "lat_deg": s.lat_deg,
+                           "lon_deg": s.lon_deg, "alt_amsl_m": s.alt_amsl_m,
+                           "state": int(self.monitor.state), "level": int(self.monitor.last_level)})
         if self.monitor.state == GnssState.GNSS_OK:
             self.estimator.gnss(s)
 
     def _announce(self, t_us: int, old: GnssState, new: GnssState, reason: str, text: str) -> None:
         self._log("gnss_state", {"t_us": t_us, "old": int(old), "new": int(new), "name": new.name,
-                                         "reason": reason})
+                                 "reason": reason})
+        self._event("gnss", f"{old.name} -> {new.name}: {reason}", logging.WARNING if new > old else logging.INFO,
+                    t_us)
         self.link.send_statustext(text, "warning" if new > old else "info")
 
+    def _track_report(self, r: TrackReading) -> None:
+        self.counters.track_reports += 1
+        if not isinstance(self.tracker, ExternalTracker):
+            return
+        self.tracker.push(r.t_us, r.x_norm, r.y_norm, r.active)
+        self._guide(r.t_us, None)
+
     # ---------------------------------------------------------------- frames
-    def _frame(self, item: tuple[int, Any, bool, int]) -> None:
+    def _take_frame(self, item: tuple[int, Any, bool, int]) -> None:
+        """Check a new frame and make it the pending one (a frame already pending is processed first)."""
         t_us, frame, vehicle_clock, capture_us = item
         if vehicle_clock:
             sync = self.link.guard._sync.get("attitude")
@@ -534,12 +659,34 @@ class Companion:
         if gray is None:
             self._reject_frame(why)
             return
+        if self._last_frame_t_us is not None and t_us <= self._last_frame_t_us:
+            self._reject_frame(f"stamp not increasing ({t_us - self._last_frame_t_us} us)")
+            return
+        crc = zlib.crc32(np.ascontiguousarray(gray).data)
+        if crc == self._last_crc:
+            self._reject_frame("frozen frame (identical to the previous one)")
+            return
+        self._last_crc = crc
         if capture_us - t_us > self.cfg.max_frame_age_s * 1e6:
             self.counters.frames_stale += 1
             return
+        self._last_frame_t_us = t_us
+        if self._pending is not None:
+            self._process(self._pending)
+        self._pending = _Pending(t_us, frame, gray, capture_us)
+
+    def _process_pending(self, now: int) -> None:
+        p = self._pending
+        if p is None:
+            return
+        if self.estimator.covers(p.t_us) or now - p.capture_us >= self.cfg.attitude_wait_s * 1e6:
+            self._pending = None
+            self._process(p)
+
+    def _process(self, p: _Pending) -> None:
         self.counters.frames += 1
         try:
-            steps = self.estimator.frame(t_us, gray)
+            steps = self.estimator.frame(p.t_us, p.gray)
         except Exception as e:
             self.counters.estimator_errors += 1
             log.exception("optical estimator failed: %s", e)
@@ -547,32 +694,38 @@ class Companion:
         for st in steps:
             self.counters.steps += 1
             self._log("gsoe", {"t_us": st.t_us, "base_t_us": st.base_t_us, "cycle_id": st.cycle_id,
-                                       "step": st.step, "dx_px": st.dx_px, "dy_px": st.dy_px,
-                                       "base_yaw_rad": st.base_yaw_rad, "gsd_m_px": st.gsd_m_px,
-                                       "height_agl_m": st.height_agl_m, "psr": st.quality.psr,
-                                       "valid": st.valid, "new_cycle": st.new_cycle})
-        self._outputs(t_us, capture_us, steps)
-        self._guide(t_us, frame if frame is not None else gray)
+                               "step": st.step, "dx_px": st.dx_px, "dy_px": st.dy_px,
+                               "base_yaw_rad": st.base_yaw_rad, "yaw_rad": st.yaw_rad, "gsd_m_px": st.gsd_m_px,
+                               "height_agl_m": st.height_agl_m, "rel_rot_rad": st.rel_rot_rad,
+                               "psr": st.quality.psr, "texture_std": st.quality.texture_std,
+                               "ssd_per_px": st.quality.ssd_per_px, "valid": st.valid, "new_cycle": st.new_cycle})
+        self._outputs(p.t_us, p.capture_us, steps)
+        if isinstance(self.tracker, TemplateTracker):
+            self._guide(p.t_us, p.frame)
 
     def _reject_frame(self, why: str) -> None:
-        key = why.split(" ")[0]
+        key = why.split(" (")[0]
         n = self.counters.frames_rejected.get(key, 0) + 1
         self.counters.frames_rejected[key] = n
         if n == 1 or n % 100 == 0:
             log.warning("frame rejected: %s (%d so far)", why, n)
         self._log("frames_rejected", {"t_us": now_us(), "reason": why})
 
-    def _outputs(self, t_us: int, capture_us: int, steps: list[GsoeStep]) -> None:
+    def _outputs(self, t_us: int, capture_us: int | None, steps: list[GsoeStep]) -> None:
+        """Refresh the estimate and send it (after every frame; between frames at the fastest output rate, so a
+        camera failure does not silence the outputs the EKF can still stand behind, nor the status values)."""
+        self._last_output = time.monotonic()
         e = self.estimator.refresh()
         if e is not None and steps:
             self._log("ekf", e.as_record())
             for st in self.estimator.ekf.status().values():
                 self._log("aid_status", st.as_record())
-        out = self.estimator.output(t_us, self.monitor.state)
-        reason = self.link.send_estimate(out)
+        out = self.estimator.output(self.monitor.state)
+        reason = self.link.send_estimate(out, capture_us)
         sent_us = now_us()
+        valid = not reason
         if reason:
-            key = reason.split(" ")[0]
+            key = reason.split(" (")[0]
             self.counters.outputs_suppressed[key] = self.counters.outputs_suppressed.get(key, 0) + 1
             last = self._last_suppress_log.get(key, -math.inf)
             if time.monotonic() - last > self.cfg.status_s:
@@ -580,32 +733,50 @@ class Companion:
                 self._last_suppress_log[key] = time.monotonic()
         else:
             self.counters.outputs_sent += 1
-        self._log("outputs", {"t_us": t_us, "sent": not reason, "reason": reason,
-                                      "drift_rad": out.drift_rad, "ata_rad": out.ata_rad,
-                                      "vel_n_m_s": out.vel_ne_m_s[0], "vel_e_m_s": out.vel_ne_m_s[1],
-                                      "wind_n_m_s": out.wind_ne_m_s[0], "wind_e_m_s": out.wind_ne_m_s[1],
-                                      "gnss_state": int(self.monitor.state),
-                                      "latency_us": sent_us - capture_us})
+        if valid != self._was_valid and reason != "not connected":
+            self._validity_changed(valid, reason)
+        self._log("outputs", {"t_us": t_us, "sent": valid, "reason": reason,
+                              "drift_rad": out.drift_rad, "drift_sigma_rad": out.drift_sigma_rad,
+                              "ata_rad": out.ata_rad, "vel_n_m_s": out.vel_ne_m_s[0], "vel_e_m_s": out.vel_ne_m_s[1],
+                              "wind_n_m_s": out.wind_ne_m_s[0], "wind_e_m_s": out.wind_ne_m_s[1],
+                              "quality": out.quality, "gnss_state": int(self.monitor.state),
+                              "latency_us": sent_us - capture_us if capture_us is not None else None})
+
+    def _validity_changed(self, valid: bool, reason: str) -> None:
+        first = self._was_valid is None
+        self._was_valid = valid
+        if first and not valid:
+            self._event("estimate", f"invalid: {reason}")
+            return
+        self._event("estimate", "valid" if valid else f"invalid: {reason}",
+                    logging.INFO if valid else logging.WARNING)
+        now = time.monotonic()
+        if now - self._last_announce >= self.cfg.announce_min_interval_s:
+            self._last_announce = now
+            text = "GSOE estimate valid" if valid else f"GSOE invalid: {reason}"
+            self.link.send_statustext(text[:STATUSTEXT_MAX_CHARS], "info" if valid else "warning")
 
     # ---------------------------------------------------------------- guidance
     def _guide(self, t_us: int, frame: Any) -> None:
-        if self.target_px is not None and not self.tracker.active:
+        if frame is not None and self.target_px is not None and not self.tracker.active:
             if self.tracker.designate(t_us, frame, self.target_px):
                 log.info("target designated at %s", self.target_px)
                 self.target_px = None
-        if not self.tracker.active or not self.guidance.due(t_us) or self._last_att is None:
+        if (not self.tracker.active and not self._guiding) or not self.guidance.due(t_us) or self._last_att is None:
             return
         res = self.tracker.update(t_us, frame)
-        out = self.estimator.output(t_us, self.monitor.state)
+        out = self.estimator.output(self.monitor.state)
         a = self._last_att
         fix, cmd = self.guidance.step(t_us, res.xy_px if res.valid else None, a.roll_rad, a.pitch_rad, a.yaw_rad,
                                       out.height_agl_m, out.drift_rad, out.drift_sigma_rad, out.valid)
         self._log("guidance", {"t_us": t_us, "track_valid": res.valid, "track_x_px": res.xy_px[0],
-                                       "track_y_px": res.xy_px[1], "range_m": fix.range_m,
-                                       "bearing_rad": fix.bearing_rad, "heading_cmd_rad": cmd.heading_rad,
-                                       "course_cmd_rad": cmd.course_rad, "drift_used_rad": cmd.drift_used_rad,
-                                       "valid": cmd.valid, "reason": cmd.reason or fix.reason})
+                               "track_y_px": res.xy_px[1], "range_m": fix.range_m,
+                               "bearing_rad": fix.bearing_rad, "heading_cmd_rad": cmd.heading_rad,
+                               "course_cmd_rad": cmd.course_rad, "drift_used_rad": cmd.drift_used_rad,
+                               "drift_applied": cmd.drift_applied, "valid": cmd.valid,
+                               "reason": cmd.reason or fix.reason or res.reason})
         if cmd.valid:
+            self._guiding = True
             self.link.send_heading_command(change_heading_command_fields(
                 cmd, self.cfg.guidance, self.link.target_system, self.link.target_component))
             self.counters.commands += 1
@@ -622,20 +793,39 @@ class Companion:
             if ok:
                 self.tracker.drop()
                 self.guidance.reset()
+                self._guiding = False
                 self.target_px = xy
                 log.info("ground station designated the target at %s", xy)
             self.gcs.conn.mav.command_ack_send(MAV_CMD_USER_1, 0 if ok else 2)
 
     # ---------------------------------------------------------------- loop
+    def _housekeeping(self) -> None:
+        while True:
+            try:
+                t, what = self.camera_thread.events.get_nowait()
+            except queue.Empty:
+                break
+            self._event("camera", what, logging.INFO if what == "opened" else logging.WARNING, t)
+        rej = self.link.guard.rejected
+        for key, n in list(rej.items()):
+            if n != self._rejected_seen.get(key, 0):
+                self._event("telemetry_rejected", f"{key}: {n - self._rejected_seen.get(key, 0)} more ({n} total)",
+                            logging.WARNING)
+                self._rejected_seen[key] = n
+
     def status(self) -> dict[str, Any]:
         return {"connected": self.link.stats.connected, "gnss": self.monitor.state.name,
                 "camera_open": self.camera_thread.opened, **dataclasses.asdict(self.counters),
-                "telemetry_rejected": dict(self.link.guard.rejected), "sent": dict(self.link.stats.sent)}
+                "telemetry_rejected": dict(self.link.guard.rejected), "sent": dict(self.link.stats.sent),
+                "send_errors": dict(self.link.stats.send_errors),
+                "send_latency_ms": {k: {"n": len(v), "median": float(np.median(v)) / 1000.0}
+                                    for k, v in self.link.stats.send_latency_us.items() if len(v)}}
 
     def run(self, duration_s: float | None = None) -> dict[str, Any]:
         start = time.monotonic()
-        last_status = last_flush = start
+        last_status = last_flush = last_house = start
         frame_wait_s = min(0.05, self.cfg.frame_timeout_s)
+        poll_s = 0.002
         try:
             while not self._stop.is_set():
                 now = time.monotonic()
@@ -644,12 +834,21 @@ class Companion:
                 self._ensure_link()
                 self._drain_telemetry()
                 self._gcs_commands()
-                self.estimator.maybe_start_from_air_data(now_us())
-                for ann in self.monitor.tick(now_us()):
+                t_now = now_us()
+                self.estimator.maybe_start_from_air_data(t_now)
+                for ann in self.monitor.tick(t_now):
                     self._announce(ann.t_us, ann.old, ann.new, ann.reason, ann.text)
-                item = self.camera_thread.latest(frame_wait_s)
+                self._process_pending(t_now)
+                item = self.camera_thread.latest(poll_s if self._pending is not None else frame_wait_s)
                 if item is not None:
-                    self._frame(item)
+                    self._drain_telemetry()
+                    self._take_frame(item)
+                    self._process_pending(now_us())
+                if time.monotonic() - self._last_output >= self._output_period_s:
+                    self._outputs(now_us(), None, [])
+                if now - last_house >= min(1.0, self.cfg.log_flush_s):
+                    last_house = now
+                    self._housekeeping()
                 if now - last_flush >= self.cfg.log_flush_s:
                     last_flush = now
                     self.runlog.flush()
@@ -665,4 +864,5 @@ class Companion:
         self.link.stop()
         if self.gcs is not None:
             self.gcs.close()
+        self._housekeeping()
         self.runlog.close()

@@ -14,19 +14,32 @@ GNSS                ``MavlinkDirect`` GPS_RAW_INT (one message with  :class:`nav
                     fix type, satellites, accuracy and velocity;
                     MAVSDK's telemetry splits them over two streams)
 home elevation      ``telemetry.subscribe_position``                 :class:`HomeReading`
+external tracker    ``MavlinkDirect`` CAMERA_TRACKING_IMAGE_STATUS   :class:`TrackReading` (an image tracker's
+                    (a video tracker's target point, normalised)     point, for :class:`nav.tracker.ExternalTracker`)
 ==================  ==============================================  =======================================
 
 Time: every sample is stamped on the companion's monotonic clock (``t_us``).  Messages that carry the vehicle's
 boot time are mapped through :class:`ClockSync` (offset = the smallest observed receive-minus-send difference, i.e.
 the least-delayed packet), so that attitude can be matched to a camera frame's exposure time.
 
-Outputs (only while the estimate passes :func:`check_estimate`; otherwise nothing is sent and the reason is
-returned and logged): drift and ATA as NAMED_VALUE_FLOAT (``GSOE_DRIFT``, ``GSOE_ATA`` in degrees, plus
-``GSOE_Q`` quality and ``GSOE_GNSS`` GNSS state) or one DEBUG_VECT ``GSOE`` (x drift deg, y ATA deg, z quality),
-through ``MavlinkDirect``; ground velocity as VISION_SPEED_ESTIMATE with its 3x3 covariance through MAVSDK
-``mocap`` (what ArduPilot EKF3 takes as external-navigation velocity); wind as WIND_COV (MAVSDK's own telemetry
-reads wind from it) and ArduPilot's WIND (Mission Planner's HUD), both through ``MavlinkDirect``; STATUSTEXT.
-Each output has a rate and an on/off switch in ``[companion.link]``.
+Outputs (only while the estimate passes :func:`check_estimate`; otherwise nothing of the estimate is sent and the
+reason is returned and logged): drift and ATA as NAMED_VALUE_FLOAT (``GSOE_DRIFT``, ``GSOE_ATA`` in degrees) or one
+DEBUG_VECT ``GSOE`` (x drift deg, y ATA deg, z quality), through ``MavlinkDirect``; ground velocity as
+VISION_SPEED_ESTIMATE with its 3x3 covariance through MAVSDK ``mocap`` (what ArduPilot EKF3 takes as
+external-navigation velocity); wind as WIND_COV (MAVSDK's own telemetry reads wind from it) and ArduPilot's WIND
+(Mission Planner's HUD), both through ``MavlinkDirect``; STATUSTEXT.  The status named values ``GSOE_Q`` (optical
+quality 0..1), ``GSOE_GNSS`` (:class:`nav.gnss_monitor.GnssState`) and ``GSOE_VALID`` (1 while the estimate is
+sent, 0 while it is withheld) are sent at the named-value rate whether the estimate is valid or not: they are
+what a ground station needs to show *why* nothing else arrives.  Each output has a rate and an on/off switch in
+``[companion.link]``.
+
+WIND_COV fields: ``wind_x``/``wind_y`` the estimate (NED, blowing to), ``wind_z`` 0 with ``vert_accuracy`` and
+``var_vert`` set to ``unknown_vertical_sigma_m_s`` (the vertical wind is not estimated: a large sigma, never a
+claimed 0), ``horiz_accuracy`` the one-sigma of the wind speed (the covariance projected on the wind direction, or
+the RMS axis sigma near calm), ``var_horiz`` the RMS of the two horizontal axis sigmas (MAVLink defines it as the
+wind's variability in m/s; the EKF's wind state follows the low-passed turbulence, so its uncertainty is the honest
+number we have), ``wind_alt`` the altitude AMSL (home elevation plus height; the height above home when the home
+elevation is not known).
 
 The asyncio loop runs in its own thread (:class:`CompanionLink`); the companion's frame loop is synchronous and
 exchanges samples and outputs through thread-safe queues, so a slow or dead link never blocks image processing.
@@ -42,6 +55,7 @@ import math
 import queue
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -68,13 +82,22 @@ ISA_LAPSE_K_M = 0.0065
 ISA_EXP = 5.25588
 EARTH_RADIUS_M = 6371008.8
 MAV_COMP_ID_ONBOARD_COMPUTER = 191
+TRACKING_STATUS_ACTIVE = 1  # CAMERA_TRACKING_STATUS_FLAGS_ACTIVE
+TRACKING_MODE_POINT = 1     # CAMERA_TRACKING_MODE_POINT
 MAV_SEVERITY = {"emergency": 0, "alert": 1, "critical": 2, "error": 3, "warning": 4, "notice": 5, "info": 6}
 NAMED_VALUE_MAX_CHARS = 10
+LATENCY_HISTORY = 100_000  # capture-to-sent latencies kept per output kind
 
 
 @dataclass(frozen=True)
 class LinkConfig:
-    """``[companion.link]``: connection, output switches and rates, output gates (units in the names)."""
+    """``[companion.link]``: connection, output switches and rates, output gates (units in the names).
+
+    ``system_id``/``component_id``: the companion's MAVLink identity (the vehicle's system id; component 191,
+    MAV_COMP_ID_ONBOARD_COMPUTER).  ``status_values``: send ``GSOE_Q``/``GSOE_GNSS``/``GSOE_VALID`` even while the
+    estimate is withheld.  ``unknown_vertical_sigma_m_s``: the one-sigma WIND_COV states for the vertical wind it
+    does not estimate.
+    """
 
     connect_timeout_s: float = 10.0
     named_values: Literal["named_value_float", "debug_vect", "off"] = "named_value_float"
@@ -94,9 +117,16 @@ class LinkConfig:
     max_clock_backwards_s: float = 0.5
     clock_window_s: float = 10.0
     queue_size: int = 4096
+    unknown_vertical_sigma_m_s: float = 5.0
+    status_values: bool = True
+    system_id: int = 1
+    component_id: int = MAV_COMP_ID_ONBOARD_COMPUTER
 
     def __post_init__(self) -> None:
         in_range(self.connect_timeout_s, 0.1, 600.0, "connect_timeout_s")
+        in_range(self.unknown_vertical_sigma_m_s, 0.0, 1e3, "unknown_vertical_sigma_m_s", lo_open=True)
+        in_range(self.system_id, 1, 255, "system_id")
+        in_range(self.component_id, 1, 255, "component_id")
         for name in ("named_values_hz", "vision_speed_hz", "wind_hz"):
             in_range(getattr(self, name), 0.01, 100.0, name)
         in_range(self.max_vel_sigma_m_s, 0.0, 100.0, "max_vel_sigma_m_s", lo_open=True)
@@ -146,7 +176,19 @@ class HomeReading:
     rel_alt_m: float
 
 
-Sample = AttitudeSample | ImuSample | AirspeedReading | BaroReading | GnssReading | HomeReading
+@dataclass(frozen=True, slots=True)
+class TrackReading:
+    """An external video tracker's report (CAMERA_TRACKING_IMAGE_STATUS) received at ``t_us``: the tracked point
+    ``x_norm``/``y_norm`` normalised to the image (0 left/top edge, 1 right/bottom edge), ``active`` when the
+    tracker reports ACTIVE tracking with a point; otherwise the point is NaN."""
+
+    t_us: int
+    x_norm: float
+    y_norm: float
+    active: bool
+
+
+Sample = AttitudeSample | ImuSample | AirspeedReading | BaroReading | GnssReading | HomeReading | TrackReading
 
 
 @dataclass(frozen=True, slots=True)
@@ -174,6 +216,7 @@ class OutputEstimate:
     vel_d_m_s: float = float("nan")
     vel_d_var: float = float("nan")
     reason: str = ""
+    home_amsl_m: float = float("nan")
 
 
 def check_estimate(est: OutputEstimate, cfg: LinkConfig) -> str:
@@ -213,6 +256,23 @@ def check_estimate(est: OutputEstimate, cfg: LinkConfig) -> str:
     return ""
 
 
+def status_values(est: OutputEstimate, valid: bool) -> dict[str, float]:
+    """The status named values sent whatever the estimate's validity (all finite by construction)."""
+    q = est.quality if math.isfinite(est.quality) else 0.0
+    return {"GSOE_Q": min(1.0, max(0.0, float(q))), "GSOE_GNSS": float(int(est.gnss_state)),
+            "GSOE_VALID": 1.0 if valid else 0.0}
+
+
+def wind_sigmas(wind_ne_m_s: NDArray[np.float64], cov_ne: NDArray[np.float64]) -> tuple[float, float]:
+    """(one-sigma of the wind speed, RMS of the two axis sigmas) from the 2x2 wind covariance (m/s)."""
+    rms = math.sqrt(max(float(np.trace(cov_ne)) / 2.0, 0.0))
+    speed = float(np.hypot(*wind_ne_m_s))
+    if speed < rms:  # near calm the direction, and so the projection, is undefined
+        return rms, rms
+    u = np.asarray(wind_ne_m_s, dtype=float) / speed
+    return math.sqrt(max(float(u @ cov_ne @ u), 0.0)), rms
+
+
 def wind_from_deg(wind_ne_m_s: NDArray[np.float64]) -> float:
     """Direction the wind blows *from*, degrees clockwise from north, [0, 360) (MAVLink WIND)."""
     return float(wrap_360(math.degrees(math.atan2(-wind_ne_m_s[1], -wind_ne_m_s[0]))))
@@ -227,8 +287,7 @@ def encode_outputs(est: OutputEstimate, cfg: LinkConfig, kinds: set[str]) -> dic
     out: dict[str, tuple[str, dict[str, Any]]] = {}
     t_ms = int(est.t_us // 1000) & 0xFFFFFFFF
     if "named" in kinds and cfg.named_values == "named_value_float":
-        vals = {"GSOE_DRIFT": math.degrees(est.drift_rad), "GSOE_ATA": float(wrap_360(math.degrees(est.ata_rad))),
-                "GSOE_Q": est.quality, "GSOE_GNSS": float(est.gnss_state)}
+        vals = {"GSOE_DRIFT": math.degrees(est.drift_rad), "GSOE_ATA": float(wrap_360(math.degrees(est.ata_rad)))}
         for name, v in vals.items():
             out[f"named:{name}"] = ("NAMED_VALUE_FLOAT", {"time_boot_ms": t_ms, "name": name, "value": float(v)})
     elif "named" in kinds and cfg.named_values == "debug_vect":
@@ -246,12 +305,14 @@ def encode_outputs(est: OutputEstimate, cfg: LinkConfig, kinds: set[str]) -> dic
                                                    "covariance": cov})
     if "wind" in kinds:
         speed = float(np.hypot(*est.wind_ne_m_s))
-        var_h = float(np.trace(est.wind_cov_ne))
         if cfg.wind_cov:
+            speed_sigma, rms_sigma = wind_sigmas(est.wind_ne_m_s, est.wind_cov_ne)
+            alt = est.height_agl_m + (est.home_amsl_m if math.isfinite(est.home_amsl_m) else 0.0)
             out["wind_cov"] = ("WIND_COV", {"time_usec": int(est.t_us), "wind_x": float(est.wind_ne_m_s[0]),
                                             "wind_y": float(est.wind_ne_m_s[1]), "wind_z": 0.0,
-                                            "var_horiz": var_h, "var_vert": 0.0, "wind_alt": est.height_agl_m,
-                                            "horiz_accuracy": math.sqrt(var_h), "vert_accuracy": 0.0})
+                                            "var_horiz": rms_sigma, "var_vert": cfg.unknown_vertical_sigma_m_s,
+                                            "wind_alt": float(alt), "horiz_accuracy": speed_sigma,
+                                            "vert_accuracy": cfg.unknown_vertical_sigma_m_s})
         if cfg.wind_ardupilot:
             out["wind"] = ("WIND", {"direction": wind_from_deg(est.wind_ne_m_s), "speed": speed, "speed_z": 0.0})
     return out
@@ -396,6 +457,24 @@ class TelemetryGuard:
         self._ok("position")
         return HomeReading(self.clock(), float(alt_amsl_m), float(rel_alt_m))
 
+    def tracking(self, f: dict[str, Any]) -> TrackReading | None:
+        """CAMERA_TRACKING_IMAGE_STATUS fields: an active point in [0, 1]^2, or an inactive report (NaN point)."""
+        try:
+            status, mode = int(f["tracking_status"]), int(f["tracking_mode"])
+            # MAVSDK's JSON writes NaN ("unknown" in this message) as null
+            x, y = (math.nan if f[k] is None else float(f[k]) for k in ("point_x", "point_y"))
+        except (KeyError, TypeError, ValueError):
+            self._reject("tracking", "malformed")
+            return None
+        active = status == TRACKING_STATUS_ACTIVE and mode == TRACKING_MODE_POINT
+        if active and not (math.isfinite(x) and math.isfinite(y) and 0.0 <= x <= 1.0 and 0.0 <= y <= 1.0):
+            self._reject("tracking", "point not finite or outside the image")
+            return None
+        self._ok("tracking")
+        if not active:
+            x = y = math.nan
+        return TrackReading(self.clock(), x, y, active)
+
     def gps_raw_int(self, f: dict[str, Any]) -> GnssReading | None:
         """GPS_RAW_INT fields (as MAVSDK's MavlinkDirect JSON or pymavlink's ``to_dict``)."""
         try:
@@ -443,6 +522,7 @@ class LinkStats:
     suppressed: dict[str, int] = field(default_factory=dict)
     dropped_samples: int = 0
     acks: list[dict[str, Any]] = field(default_factory=list)
+    send_latency_us: dict[str, deque[int]] = field(default_factory=dict)
 
 
 class CompanionLink:
@@ -472,6 +552,11 @@ class CompanionLink:
         self.target_component = 1
 
     # ---------------------------------------------------------------- connection
+    @property
+    def started(self) -> bool:
+        """An autopilot was found and the streams are subscribed (MAVSDK then reconnects by itself)."""
+        return self._system is not None
+
     def start(self, timeout_s: float | None = None) -> bool:
         t = self.cfg.connect_timeout_s if timeout_s is None else timeout_s
         fut = asyncio.run_coroutine_threadsafe(self._connect(t), self._loop)
@@ -483,7 +568,7 @@ class CompanionLink:
 
     async def _connect(self, timeout_s: float) -> bool:
         from mavsdk import LogLevel, log_subscribe
-        from mavsdk.asyncio import ComponentType, Configuration, Mavsdk
+        from mavsdk.asyncio import Configuration, Mavsdk
         from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync
         from mavsdk.asyncio.plugins.mocap import MocapAsync
         from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
@@ -497,7 +582,9 @@ class CompanionLink:
                 return True  # MAVSDK's own console printing off: everything goes through logging
 
             log_subscribe(_to_logging)
-            cfg = Configuration.create_with_component_type(ComponentType.COMPANION_COMPUTER)
+            # the vehicle's system id, component MAV_COMP_ID_ONBOARD_COMPUTER: what ground stations (and
+            # nav.gcs_display) expect of a companion computer
+            cfg = Configuration.create_manual(self.cfg.system_id, self.cfg.component_id, True)
             self._mavsdk = Mavsdk(cfg)
             await self._mavsdk.add_any_connection(self.url)
         system = await self._mavsdk.first_autopilot(timeout_s=timeout_s)
@@ -526,6 +613,8 @@ class CompanionLink:
                 json.loads(m.fields_json)))),
             asyncio.ensure_future(self._pump(tel.subscribe_position(), lambda m: g.home(
                 m.absolute_altitude_m, m.relative_altitude_m))),
+            asyncio.ensure_future(self._pump(self._direct.subscribe_message("CAMERA_TRACKING_IMAGE_STATUS"),
+                                             lambda m: g.tracking(json.loads(m.fields_json)))),
             asyncio.ensure_future(self._watch(system)),
         ]
         self.stats.connected = True
@@ -579,12 +668,21 @@ class CompanionLink:
     def _count(self, table: dict[str, int], key: str) -> None:
         table[key] = table.get(key, 0) + 1
 
-    def send_estimate(self, est: OutputEstimate) -> str:
-        """Send the outputs that are due; returns '' or the reason nothing was sent."""
+    def send_estimate(self, est: OutputEstimate, capture_us: int | None = None) -> str:
+        """Send the outputs that are due; returns '' or the reason the estimate was not sent (the status named
+        values, :func:`status_values`, go out at their rate either way).  With ``capture_us`` (when the frame the
+        estimate comes from was captured, companion clock) the time from capture to each send's completion is kept
+        in ``stats.send_latency_us`` (the last :data:`LATENCY_HISTORY` per output)."""
         if self._direct is None:
             self._count(self.stats.suppressed, "not connected")
             return "not connected"
         reason = check_estimate(est, self.cfg)
+        if (self.cfg.status_values and self.cfg.named_values == "named_value_float"
+                and self._due("status", self.guard.clock(), self.cfg.named_values_hz)):
+            t_ms = int(self.guard.clock() // 1000) & 0xFFFFFFFF
+            for name, v in status_values(est, not reason).items():
+                self._submit(f"named:{name}", self._send_one("NAMED_VALUE_FLOAT",
+                                                             {"time_boot_ms": t_ms, "name": name, "value": v}))
         if reason:
             self._count(self.stats.suppressed, reason.split(" ")[0])
             return reason
@@ -596,7 +694,7 @@ class CompanionLink:
         if (self.cfg.wind_cov or self.cfg.wind_ardupilot) and self._due("wind", est.t_us, self.cfg.wind_hz):
             kinds.add("wind")
         for key, (name, fields) in encode_outputs(est, self.cfg, kinds).items():
-            self._submit(key, self._send_one(name, fields))
+            self._submit(key, self._send_one(name, fields), capture_us)
         return ""
 
     async def _send_one(self, name: str, fields: dict[str, Any]) -> None:
@@ -613,13 +711,16 @@ class CompanionLink:
                              target_component_id=self.target_component, fields_json=json.dumps(fields))
         await self._direct.send_message(msg)
 
-    def _submit(self, key: str, coro: Any) -> None:
+    def _submit(self, key: str, coro: Any, since_us: int | None = None) -> None:
         fut = asyncio.run_coroutine_threadsafe(coro, self._loop)
 
         def done(f: Any) -> None:
             e = f.exception()
             if e is None:
                 self._count(self.stats.sent, key)
+                if since_us is not None:
+                    self.stats.send_latency_us.setdefault(key, deque(maxlen=LATENCY_HISTORY)).append(
+                        self.guard.clock() - since_us)
             else:
                 self._count(self.stats.send_errors, key)
                 log.debug("send %s failed: %s", key, e)

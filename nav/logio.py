@@ -8,7 +8,7 @@ simulation time in ``gsoe sim``, the companion's monotonic clock in flight).  St
 the companion: ``truth.csv`` (simulator only), ``imu.csv``, ``attitude.csv``, ``airspeed.csv``, ``baro.csv``,
 ``gnss.csv``, ``gsoe.csv`` (optical steps), ``baseline.csv`` (the paper's filtered drift), ``ekf.csv`` (EKF
 outputs with sigmas), ``aid_status.csv`` (per aid source and step: innovation, variance, test ratio, fused),
-``outputs.csv`` (what was sent to the autopilot).
+``outputs.csv`` (what was sent to the autopilot), ``events.csv`` (companion state changes and rejected inputs).
 
 Writes are append-only and flushed to the OS at least every ``flush_interval_s`` (and on close), so a killed
 process loses at most that much; a partially written last line is dropped by readers (``read_log``).

@@ -82,7 +82,7 @@ def _gray(frame: NDArray[np.uint8]) -> NDArray[np.uint8] | None:
     if frame.ndim == 2:
         return frame
     if frame.ndim == 3 and frame.shape[2] == 3:
-        return cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
+        return np.asarray(cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY), dtype=np.uint8)
     if frame.ndim == 3 and frame.shape[2] == 1:
         return frame[:, :, 0]
     return None
@@ -178,3 +178,48 @@ class TemplateTracker:
             self._template = None
             reason += "; target dropped"
         return TrackResult(t_us, self._xy, math.nan, False, reason)
+
+
+class ExternalTracker:
+    """The output of an external video tracker (a gimbal camera's tracker, a detector on a coprocessor, or the
+    simulator's tracking-camera hook) reported over MAVLink as CAMERA_TRACKING_IMAGE_STATUS.
+
+    :meth:`push` takes each report (:class:`nav.link.TrackReading`: a point normalised to the image, 0 at the left/top
+    image edge and 1 at the right/bottom edge); :meth:`update` returns the newest one as pixels (column, row, pixel
+    centres at integers: ``x_px = x_norm * width - 0.5``) of a camera of ``size_px`` when it is active and at most
+    ``max_age_s`` old.  The target is designated on the tracker's side, so :meth:`designate` only reports whether
+    the tracker is active.
+    """
+
+    def __init__(self, size_px: tuple[int, int], max_age_s: float) -> None:
+        in_range(max_age_s, 0.0, 60.0, "max_age_s", lo_open=True)
+        self.size_px = size_px
+        self.max_age_us = int(max_age_s * 1e6)
+        self._last: tuple[int, float, float, bool] | None = None
+
+    def push(self, t_us: int, x_norm: float, y_norm: float, active: bool) -> None:
+        self._last = (int(t_us), float(x_norm), float(y_norm), bool(active))
+
+    @property
+    def active(self) -> bool:
+        return self._last is not None and self._last[3]
+
+    def designate(self, t_us: int, frame: NDArray[np.uint8], xy_px: tuple[float, float]) -> bool:
+        return self.active
+
+    def drop(self) -> None:
+        self._last = None
+
+    def update(self, t_us: int, frame: NDArray[np.uint8] | None = None) -> TrackResult:
+        nan2 = (math.nan, math.nan)
+        if self._last is None:
+            return TrackResult(t_us, nan2, math.nan, False, "no tracker report")
+        t, x, y, active = self._last
+        if not active:
+            return TrackResult(t_us, nan2, math.nan, False, "external tracker not tracking")
+        if not (0 <= t_us - t <= self.max_age_us):
+            return TrackResult(t_us, nan2, math.nan, False, f"tracker report {abs(t_us - t) / 1e6:.2f} s old")
+        if not (math.isfinite(x) and math.isfinite(y) and 0.0 <= x <= 1.0 and 0.0 <= y <= 1.0):
+            return TrackResult(t_us, nan2, math.nan, False, "tracker point outside the image")
+        w, h = self.size_px
+        return TrackResult(t_us, (x * w - 0.5, y * h - 0.5), 1.0, True)

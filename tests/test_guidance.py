@@ -182,3 +182,21 @@ def test_command_id_matches_pymavlink_dialect():
 
     assert MAV_CMD_GUIDED_CHANGE_HEADING == ardupilotmega.MAV_CMD_GUIDED_CHANGE_HEADING
     assert HEADING_TYPE_HEADING == ardupilotmega.HEADING_TYPE_HEADING
+
+
+def test_external_tracker_reports_pixels_while_fresh_and_active():
+    from nav.tracker import ExternalTracker
+
+    t = ExternalTracker((640, 480), max_age_s=0.5)
+    assert not t.active and not t.update(0).valid
+    t.push(1_000_000, 0.5, 0.25, True)
+    r = t.update(1_200_000)
+    assert t.active and r.valid and r.xy_px == pytest.approx((319.5, 119.5))  # pixel centres at integers
+    assert not t.update(1_600_001).valid  # too old
+    assert "old" in t.update(900_000).reason  # report from the future of this query
+    t.push(2_000_000, math.nan, math.nan, False)
+    assert not t.active and not t.update(2_000_001).valid
+    # the hook's encoding (x = (column + 0.5) / width) round-trips through the tracker
+    col, row = 123.25, 301.5
+    t.push(3_000_000, (col + 0.5) / 640, (row + 0.5) / 480, True)
+    assert t.update(3_000_000).xy_px == pytest.approx((col, row))

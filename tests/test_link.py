@@ -104,7 +104,7 @@ def test_telemetry_arrives_as_validated_samples(pair):
     att = [s for s in samples if isinstance(s, AttitudeSample)]
     assert len(att) > 30  # 50 Hz stream
     assert all(np.diff([a.t_us for a in att]) > 0)
-    yaw_truth = veh.vehicle.plane.yaw_rad
+    yaw_truth = veh.vehicle.truth.yaw_rad
     assert math.cos(att[-1].yaw_rad - yaw_truth) > math.cos(math.radians(3.0))
     imu = [s for s in samples if isinstance(s, ImuSample)][-1]
     assert imu.accel_b_m_s2[2] == pytest.approx(-9.81, abs=0.3)  # SCALED_IMU mG converted to m/s^2
@@ -112,7 +112,7 @@ def test_telemetry_arrives_as_validated_samples(pair):
     assert tas.tas_m_s == pytest.approx(20.0, abs=0.01)
     gnss = [s for s in samples if isinstance(s, GnssReading)][-1]
     assert gnss.report.fix_type == 3 and gnss.report.vel_ne_m_s is not None
-    truth_v = veh.vehicle.plane.vel_ned_m_s[:2]
+    truth_v = veh.vehicle.truth.vel_ned_m_s[:2]
     np.testing.assert_allclose(gnss.report.vel_ne_m_s, truth_v, atol=0.6)
 
 
@@ -154,11 +154,15 @@ def test_invalid_or_uncertain_estimates_are_not_sent(pair):
         estimate(t + 4_000_000, drift_sigma_rad=math.radians(20.0)),
         estimate(t + 5_000_000, wind_cov_ne=np.array([[1.0, 2.0], [2.0, 1.0]])),  # not PSD
     ]
+    drift_before = len(v.output_times.get("NAMED_VALUE_FLOAT:GSOE_DRIFT", []))
     reasons = [link.send_estimate(e) for e in bad]
     assert all(reasons), reasons
     time.sleep(0.5)
-    for kind in ("NAMED_VALUE_FLOAT", "VISION_SPEED_ESTIMATE", "WIND_COV", "WIND"):
+    for kind in ("VISION_SPEED_ESTIMATE", "WIND_COV", "WIND"):
         assert v.received.get(kind, 0) == before.get(kind, 0), kind
+    assert len(v.output_times.get("NAMED_VALUE_FLOAT:GSOE_DRIFT", [])) == drift_before
+    # the status values still go out, saying the estimate is withheld
+    assert v.named_values["GSOE_VALID"] == 0.0 and v.named_values["GSOE_GNSS"] == 2.0
 
 
 def test_heading_command_is_acknowledged_and_flown(pair):
@@ -168,7 +172,7 @@ def test_heading_command_is_acknowledged_and_flown(pair):
     assert wait_for(lambda: bool(link.stats.acks), 5.0)
     assert link.stats.acks[-1].get("result") == 0
     assert veh.vehicle.heading_commands and veh.vehicle.heading_commands[-1][1] == pytest.approx(120.0)
-    assert wait_for(lambda: abs(math.degrees(veh.vehicle.plane.yaw_rad) - 120.0) < 3.0, 15.0)
+    assert wait_for(lambda: abs(math.degrees(veh.vehicle.truth.yaw_rad) - 120.0) < 3.0, 15.0)
 
 
 def test_garbage_bytes_do_not_break_either_side(pair):
@@ -217,3 +221,69 @@ def test_telemetry_guard_rejects_nan_out_of_range_and_backwards_time():
     assert g.gps_raw_int({"fix_type": 3}) is None  # malformed
     assert g.rejected["attitude:not finite"] == 1 and g.rejected["attitude:time not increasing"] == 1
     assert sum(g.rejected.values()) == 9
+
+
+def test_status_values_and_wind_cov_fields():
+    from nav.link import encode_outputs, status_values, wind_sigmas
+
+    est = estimate(0, wind_cov_ne=np.array([[0.09, 0.0], [0.0, 0.25]]), home_amsl_m=488.0)
+    assert status_values(est, True) == {"GSOE_Q": 0.9, "GSOE_GNSS": 2.0, "GSOE_VALID": 1.0}
+    assert status_values(estimate(0, quality=math.nan), False)["GSOE_Q"] == 0.0
+    wc = encode_outputs(est, LinkConfig(), {"wind"})["wind_cov"][1]
+    # the wind blows east (0, 8): its speed sigma is the east sigma 0.5; var_horiz the RMS of the axis sigmas
+    assert wc["horiz_accuracy"] == pytest.approx(0.5)
+    assert wc["var_horiz"] == pytest.approx(math.sqrt((0.09 + 0.25) / 2))
+    assert wc["wind_alt"] == pytest.approx(588.0)  # AMSL: home 488 m + 100 m
+    assert wc["vert_accuracy"] == LinkConfig().unknown_vertical_sigma_m_s > 0.0  # never a claimed exact 0
+    assert wind_sigmas(np.array([0.01, 0.0]), np.eye(2))[0] == pytest.approx(1.0)  # calm: RMS sigma
+
+
+def test_tracking_reports_are_validated():
+    from nav.link import TelemetryGuard
+
+    g = TelemetryGuard(LinkConfig(), clock=lambda: 5)
+    ok = g.tracking({"tracking_status": 1, "tracking_mode": 1, "point_x": 0.25, "point_y": 0.75})
+    assert ok is not None and ok.active and (ok.x_norm, ok.y_norm) == (0.25, 0.75)
+    idle = g.tracking({"tracking_status": 0, "tracking_mode": 1, "point_x": None, "point_y": None})
+    assert idle is not None and not idle.active and math.isnan(idle.x_norm)
+    assert g.tracking({"tracking_status": 1, "tracking_mode": 1, "point_x": 1.5, "point_y": 0.5}) is None
+    assert g.tracking({"tracking_status": 1, "tracking_mode": 1, "point_x": math.nan, "point_y": 0.5}) is None
+    assert g.tracking({"tracking_status": 1}) is None
+    assert g.rejected == {"tracking:point not finite or outside the image": 2, "tracking:malformed": 1}
+
+
+@pytest.mark.parametrize("att_deg", [(0, 0, 0), (30, 5, 100), (-45, -10, 250), (0, 20, 10)])
+def test_vehicle_renders_every_pixel_the_estimator_samples(gsoe_config, camera, att_deg):
+    """The vehicle renders only a region around the nadir: it must contain the estimator's own sampling region."""
+    from gsoe.cycle import GsoeEstimator
+    from gsoe.rotation import R_nb_from_euler
+    from sim.mavlink_vehicle import ROI_MARGIN_PX, BellyCamera, nadir_roi
+
+    belly = BellyCamera("forest_road", 0, 0.0, 0.0, np.random.default_rng(0))
+    R_nb = R_nb_from_euler(*np.deg2rad(att_deg))
+    need = GsoeEstimator(gsoe_config, camera).raw_roi(R_nb, 0)
+    have = nadir_roi(camera, R_nb, belly.half_angle_rad, ROI_MARGIN_PX)
+    assert need is not None and have is not None
+    assert have[0] <= need[0] and have[1] <= need[1] and have[2] >= need[2] and have[3] >= need[3], (have, need)
+
+
+def test_vehicle_flags_every_invalid_value_it_receives():
+    from sim.mavlink_vehicle import received_problems
+
+    def nv(name, value):
+        return {"mavpackettype": "NAMED_VALUE_FLOAT", "name": name, "value": value}
+
+    good = [nv("GSOE_DRIFT", -12.0), nv("GSOE_ATA", 359.9), nv("GSOE_Q", 1.0), nv("GSOE_VALID", 0.0),
+            {"mavpackettype": "WIND", "direction": 270.0, "speed": 8.0, "speed_z": 0.0},
+            {"mavpackettype": "VISION_SPEED_ESTIMATE", "x": 1.0, "y": 2.0, "z": 0.0,
+             "covariance": [0.1, 0, 0, 0, 0.1, 0, 0, 0, 25.0]},
+            {"mavpackettype": "COMMAND_LONG", "command": 43002, "param1": 1.0, "param2": 12.0, "param3": 5.0}]
+    bad = [nv("GSOE_DRIFT", math.nan), nv("GSOE_DRIFT", 95.0), nv("GSOE_ATA", 360.5), nv("GSOE_Q", 1.5),
+           {"mavpackettype": "WIND", "direction": 360.0, "speed": 8.0, "speed_z": 0.0},
+           {"mavpackettype": "WIND", "direction": 90.0, "speed": math.inf, "speed_z": 0.0},
+           {"mavpackettype": "VISION_SPEED_ESTIMATE", "x": 1.0, "y": 2.0, "z": 0.0,
+            "covariance": [0.1, 1.0, 0, 1.0, 0.1, 0, 0, 0, 25.0]},
+           {"mavpackettype": "VISION_SPEED_ESTIMATE", "x": 500.0, "y": 2.0, "z": 0.0, "covariance": [0.0] * 9},
+           {"mavpackettype": "COMMAND_LONG", "command": 43002, "param1": 1.0, "param2": 360.0, "param3": 5.0}]
+    assert all(received_problems(m) == [] for m in good)
+    assert all(received_problems(m) for m in bad)
