@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -32,7 +31,7 @@ from scipy.spatial.transform import Rotation
 
 from fusion.config import ekf_config_from_raw
 from fusion.ekf import NavEkf, NavEstimate
-from gsoe.angles import angle_diff, wrap_2pi
+from gsoe.angles import angle_diff
 from gsoe.baseline import PaperBaseline
 from gsoe.camera import CameraModel
 from gsoe.cycle import GsoeEstimator
@@ -265,7 +264,7 @@ def run_flight(scn: Scenario, *, seed: int, duration_s: float | None = None, out
             fig["path"].append((s.dx_px, s.dy_px))
 
     try:
-        for k in range(n_steps):
+        for _ in range(n_steps):
             t0 = time.perf_counter()
             cmd = ap.update(truth, scn.dt_s)
             truth = dyn.step(cmd)
@@ -330,7 +329,6 @@ def run_flight(scn: Scenario, *, seed: int, duration_s: float | None = None, out
             if bar is not None and int(t_s) > last_bar_s:
                 bar.update(int(t_s) - last_bar_s)
                 last_bar_s = int(t_s)
-            del k
     except KeyboardInterrupt:
         interrupted = True
         log.warning("interrupted at t = %.1f s: the logs written so far are kept", truth.t_s)
@@ -568,8 +566,4 @@ def _outage_metrics(E: dict[str, np.ndarray], T: dict[str, np.ndarray], outages:
     return out
 
 
-def default_out_dir() -> Path:
-    return Path(os.environ.get("GSOE_OUT", "out")) / "sim"
-
-
-__all__ = ["run_flight", "compute_metrics", "wind_params", "wrap_2pi"]
+__all__ = ["run_flight", "compute_metrics", "wind_params"]
