@@ -191,7 +191,9 @@ class GsoeEstimator:
         self._cycle = None
         out = self._start(t_us, image, att, height_agl_m)
         new = self._cycle
-        step = old.last_step_xy if old.last_step_xy is not None else old.carried_step_xy
+        # only a step the old cycle measured itself is carried: a carried step is used once, so a stale one
+        # (the ground speed changed during a stretch without matches) cannot lock the gate
+        step = old.last_step_xy
         if new is not None and step is not None:
             # image x = right, y = -forward; rotate the ground step into the new base heading
             d = new.base_yaw_rad - old.base_yaw_rad
