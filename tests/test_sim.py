@@ -122,8 +122,6 @@ def test_hard_scenarios_no_nan_and_invalid_flagged(hard_run):
         assert np.median(ekf["drift_sigma_rad"][during]) > 1.5 * np.median(ekf["drift_sigma_rad"][before])
 
 
-@pytest.mark.xfail(strict=False, reason="known gap: in moderate turbulence and gusts the EKF's random-walk wind is "
-                   "over-confident (RMS error/sigma 2-3); see the closing note of the fusion issue")
 def test_hard_scenarios_wind_error_bounded_by_sigma(hard_run):
     name, m, ekf, truth = hard_run
     valid = ekf["valid"] > 0.5
@@ -152,13 +150,16 @@ def test_ctrl_c_leaves_a_readable_partial_log(tmp_path):
     import sys
     import time
 
-    proc = subprocess.Popen([sys.executable, "-m", "nav.cli", "sim", "--duration", "600", "--out", str(tmp_path),
+    proc = subprocess.Popen([sys.executable, "-m", "nav.cli", "sim", "--duration", "2000", "--out", str(tmp_path),
                              "--no-progress"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         deadline = time.monotonic() + 120.0
-        while not (tmp_path / "gsoe.csv").exists() and time.monotonic() < deadline and proc.poll() is None:
+        gsoe_log = tmp_path / "gsoe.csv"
+        while (not gsoe_log.exists() or gsoe_log.stat().st_size == 0) and time.monotonic() < deadline \
+                and proc.poll() is None:
             time.sleep(0.2)
         time.sleep(2.0)
+        assert proc.poll() is None, "the flight ended before it could be interrupted"
         proc.send_signal(signal.SIGINT)
         out, _ = proc.communicate(timeout=120)
     finally:
@@ -167,6 +168,6 @@ def test_ctrl_c_leaves_a_readable_partial_log(tmp_path):
     assert proc.returncode == 130, out
     assert "interrupted" in out
     m = json.loads((tmp_path / "metrics.json").read_text())
-    assert m["interrupted"] is True and 0 < m["sim_s"] < 600
+    assert m["interrupted"] is True and 0 < m["sim_s"] < 2000
     truth = read_log(tmp_path / "truth.csv")
     assert truth["t_us"].size > 10 and np.all(np.isfinite(truth["t_us"]))
