@@ -518,6 +518,7 @@ class Companion:
         self.cfg = companion_config_from_raw(raw)
         self.camera = CameraModel.from_config(gsoe_cfg.camera)
         self.runlog = RunLog(log_dir, flush_interval_s=self.cfg.log_flush_s)
+        self.destroy_link_native = True
         self.link = CompanionLink(connect_url, self.cfg.link)
         self.estimator = Estimator(gsoe_cfg, self.camera, raw, self.cfg)
         self.monitor = GnssMonitor(self.cfg.gnss)
@@ -860,9 +861,11 @@ class Companion:
         return self.status()
 
     def close(self) -> None:
+        """Stop the camera, close the logs (so nothing logged can be lost), then the ground-station and autopilot
+        links; with ``destroy_link_native`` false the native MAVSDK instance is left to the process's exit."""
         self.camera_thread.stop()
-        self.link.stop()
-        if self.gcs is not None:
-            self.gcs.close()
         self._housekeeping()
         self.runlog.close()
+        if self.gcs is not None:
+            self.gcs.close()
+        self.link.stop(destroy_native=self.destroy_link_native)

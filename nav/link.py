@@ -642,14 +642,17 @@ class CompanionLink:
                 log.warning("autopilot link %s", "restored" if connected else "lost")
             self.stats.connected = bool(connected)
 
-    def stop(self) -> None:
+    def stop(self, destroy_native: bool = True) -> None:
+        """Stop the link's tasks and its event-loop thread.  ``destroy_native=False`` leaves the native MAVSDK
+        instance to the process's exit (the companion CLI leaves with ``os._exit`` after closing its logs: the
+        native binding has been seen to crash when destroyed while its receive threads are busy)."""
         async def _stop() -> None:
             for t in self._tasks:
                 t.cancel()
             for t in self._tasks:
                 with contextlib.suppress(BaseException):
                     await t
-            if self._mavsdk is not None:
+            if self._mavsdk is not None and destroy_native:
                 self._mavsdk.destroy()
 
         with contextlib.suppress(Exception):
