@@ -319,10 +319,11 @@ def run_flight(scn: Scenario, *, seed: int, duration_s: float | None = None, out
                 R_nb = Rotation.from_euler("ZYX", [truth.yaw_rad, truth.pitch_rad, truth.roll_rad]).as_matrix()
                 source = _FrameSource(renderer, truth, R_nb, r.frame.exposure_s, scn.camera.noise_std,
                                       scn.camera.gain, rng_cam, timers)
-                h_m = ekf.estimate().height_agl_m if ekf is not None else baro_alt_m
+                est_now = ekf.estimate() if ekf is not None else None
+                h_m = est_now.height_agl_m if est_now is not None else baro_alt_m
                 pending.append((r.frame.t_us, source() if full_frame else source, h_m))
                 t0 = timers.add("render", t0)
-                _record_frame(series, truth, ekf, runlog)
+                _record_frame(series, truth, ekf, est_now, runlog)
                 t0 = timers.add("log", t0)
             if pending:
                 _process_ready()
@@ -358,7 +359,9 @@ def run_flight(scn: Scenario, *, seed: int, duration_s: float | None = None, out
     return out
 
 
-def _record_frame(series: _Series, tr: TruthState, ekf: NavEkf | None, runlog: RunLog | None) -> None:
+def _record_frame(series: _Series, tr: TruthState, ekf: NavEkf | None, e: NavEstimate | None,
+                  runlog: RunLog | None) -> None:
+    """Record the truth and the EKF's estimate ``e`` (computed once per frame by the caller) of one frame."""
     T = series.truth
     T["t_s"].append(tr.t_s)
     for key, v in zip(("n", "e", "d"), tr.pos_ned_m, strict=True):
@@ -377,9 +380,8 @@ def _record_frame(series: _Series, tr: TruthState, ekf: NavEkf | None, runlog: R
     T["h"].append(tr.height_agl_m)
     if runlog is not None:
         runlog.write("truth", _truth_record(tr))
-    if ekf is None:
+    if ekf is None or e is None:
         return
-    e = ekf.estimate()
     E = series.ekf
     E["t_s"].append(e.t_us / US_PER_S)
     E["drift"].append(e.drift_rad)
