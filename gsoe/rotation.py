@@ -5,6 +5,8 @@ Built on :class:`scipy.spatial.transform.Rotation`; only the frame bookkeeping i
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
@@ -18,8 +20,16 @@ R_BC_NOMINAL: NDArray[np.float64] = np.array(
 
 
 def R_nb_from_euler(roll_rad: float, pitch_rad: float, yaw_rad: float) -> NDArray[np.float64]:
-    """Body-to-NED rotation from 3-2-1 Euler angles (yaw, pitch, roll)."""
-    return Rotation.from_euler("ZYX", [yaw_rad, pitch_rad, roll_rad]).as_matrix()
+    """Body-to-NED rotation from 3-2-1 Euler angles (yaw, pitch, roll): ``R_z(yaw) R_y(pitch) R_x(roll)``, written
+    out (a per-frame hot path; ``scipy``'s ``Rotation.from_euler("ZYX", ...)`` is the reference in the tests)."""
+    cr, sr = math.cos(roll_rad), math.sin(roll_rad)
+    cp, sp = math.cos(pitch_rad), math.sin(pitch_rad)
+    cy, sy = math.cos(yaw_rad), math.sin(yaw_rad)
+    return np.array([
+        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+        [-sp, cp * sr, cp * cr],
+    ])
 
 
 def euler_from_R_nb(R_nb: NDArray[np.float64]) -> tuple[float, float, float]:

@@ -2,9 +2,11 @@
 
 Format (documented once, read by ``pandas.read_csv(path)`` or ``numpy.genfromtxt(path, delimiter=",",
 names=True)``): the first line is the header of column names, each with its unit suffix (``t_us``,
-``roll_rad``, ``wind_n_m_s``); every following line is one record; booleans are written 0/1; a missing or
-invalid number is written ``nan``.  Every stream starts with ``t_us`` (integer microseconds of one clock:
-simulation time in ``gsoe sim``, the companion's monotonic clock in flight).  Streams used by ``gsoe sim`` and
+``roll_rad``, ``wind_n_m_s``); every following line is one record; numbers are written with the shortest
+representation that reads back to the same float (Python's ``repr``), booleans 0/1, a missing number ``nan``,
+infinities ``inf``/``-inf``, and text with its commas and newlines replaced by ``;`` and a space.  Every stream
+starts with ``t_us`` (integer microseconds of one clock: simulation time in ``gsoe sim``, the companion's
+monotonic clock in flight).  Streams used by ``gsoe sim`` and
 the companion: ``truth.csv`` (simulator only), ``imu.csv``, ``attitude.csv``, ``airspeed.csv``, ``baro.csv``,
 ``gnss.csv``, ``gsoe.csv`` (optical steps), ``baseline.csv`` (the paper's filtered drift), ``ekf.csv`` (EKF
 outputs with sigmas), ``aid_status.csv`` (per aid source and step: innovation, variance, test ratio, fused),
@@ -18,7 +20,7 @@ from __future__ import annotations
 
 import csv
 import io
-import math
+import operator
 import os
 import time
 from collections.abc import Mapping, Sequence
@@ -29,15 +31,15 @@ import numpy as np
 
 DEFAULT_FLUSH_INTERVAL_S = 0.5
 
-
-_INF = float("inf")
+_PLAIN_TYPES = frozenset((float, int, np.float64))
+"""Types the C ``csv`` writer formats exactly as :func:`_fmt` would (shortest round-trip repr)."""
 
 
 def _fmt(v: Any) -> str:
-    """One CSV field (a hot path: exact type checks first)."""
+    """One CSV field (exact type checks first)."""
     t = type(v)
     if t is float or t is np.float64:
-        return repr(float(v)) if -_INF < v < _INF else "nan"
+        return repr(float(v))
     if t is int:
         return str(v)
     if t is bool or t is np.bool_:
@@ -52,7 +54,7 @@ def _fmt(v: Any) -> str:
         f = float(v)
     except (TypeError, ValueError):
         return str(v).replace(",", ";").replace("\n", " ")
-    return repr(f) if math.isfinite(f) else "nan"
+    return repr(f)
 
 
 class CsvStream:
@@ -65,11 +67,20 @@ class CsvStream:
         self._fh = path.open("a", buffering=1 << 16, newline="")
         if new:
             self._fh.write(",".join(self.columns) + "\n")
+        self._writer = csv.writer(self._fh, lineterminator="\n")
+        self._get = operator.itemgetter(*self.columns) if len(self.columns) > 1 else None
         self._flush_interval_s = flush_interval_s
         self._last_flush = time.monotonic()
 
     def write(self, record: Mapping[str, Any]) -> None:
-        self._fh.write(",".join(_fmt(record.get(c)) for c in self.columns) + "\n")
+        """Append one record; missing columns are written ``nan``, extra keys are ignored."""
+        try:
+            vals = list(self._get(record)) if self._get is not None else [record[self.columns[0]]]
+        except KeyError:
+            vals = [record.get(c) for c in self.columns]
+        if not _PLAIN_TYPES.issuperset(map(type, vals)):  # the C writer's float/int output is already ours
+            vals = [_fmt(v) for v in vals]
+        self._writer.writerow(vals)
         now = time.monotonic()
         if now - self._last_flush >= self._flush_interval_s:
             self.flush()

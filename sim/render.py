@@ -52,18 +52,24 @@ _DN_MAX = 255.0
 Roi = tuple[int, int, int, int]
 
 
+_EYE3 = np.eye(3)
+
+
 def _vec3(value: ArrayLike | None, name: str) -> NDArray[np.float64]:
     arr = np.zeros(3) if value is None else np.asarray(value, dtype=np.float64)
-    if arr.shape != (3,) or not np.all(np.isfinite(arr)):
+    # (a sum is finite only if every term is: one cheap check per call on this hot path)
+    if arr.shape != (3,) or not math.isfinite(float(arr.sum())):
         raise ValueError(f"{name} must be 3 finite numbers, got {value!r}")
     return arr
 
 
 def _rotation(R: ArrayLike, name: str = "R_nb") -> NDArray[np.float64]:
     arr = np.asarray(R, dtype=np.float64)
-    if arr.shape != (3, 3) or not np.all(np.isfinite(arr)):
+    if arr.shape != (3, 3) or not math.isfinite(float(arr.sum())):
         raise ValueError(f"{name} must be a finite 3x3 matrix, got shape {arr.shape}")
-    if np.max(np.abs(arr.T @ arr - np.eye(3))) > ROTATION_TOL or np.linalg.det(arr) <= 0:
+    (a, b, c), (d, e, f), (g, h, i) = arr.tolist()
+    det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
+    if not float(np.abs(arr.T @ arr - _EYE3).max()) <= ROTATION_TOL or det <= 0:
         raise ValueError(f"{name} is not a rotation matrix (orthonormal, det +1)")
     return arr
 
@@ -208,7 +214,7 @@ class CameraRenderer:
             return self._render_pose(pos, R, box)
         # image motion at the centre during the exposure: translation over the height plus rotation
         f_px = self.camera.focal_px
-        blur_px = exposure * f_px * (float(np.linalg.norm(vel)) / max(-pos[2], 1e-3) + float(np.linalg.norm(rates)))
+        blur_px = exposure * f_px * (math.hypot(*vel.tolist()) / max(-pos[2], 1e-3) + math.hypot(*rates.tolist()))
         n = min(self.blur_subsamples, int(np.ceil(blur_px / BLUR_PX_PER_SUBSAMPLE)))
         if n <= 1:
             return self._render_pose(pos, R, box)

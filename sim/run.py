@@ -27,7 +27,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from fusion.config import ekf_config_from_raw
 from fusion.ekf import NavEkf, NavEstimate
@@ -35,6 +34,7 @@ from gsoe.angles import angle_diff
 from gsoe.baseline import PaperBaseline
 from gsoe.camera import CameraModel
 from gsoe.cycle import GsoeEstimator
+from gsoe.rotation import R_nb_from_euler
 from gsoe.types import AttitudeSample, GsoeStep
 from nav.configfile import load_gsoe_config
 from nav.logio import RunLog
@@ -316,11 +316,12 @@ def run_flight(scn: Scenario, *, seed: int, duration_s: float | None = None, out
                                 "n_sats": g.n_sats})
             t0 = timers.add("ekf", t0)
             if r.frame is not None:
-                R_nb = Rotation.from_euler("ZYX", [truth.yaw_rad, truth.pitch_rad, truth.roll_rad]).as_matrix()
-                source = _FrameSource(renderer, truth, R_nb, r.frame.exposure_s, scn.camera.noise_std,
-                                      scn.camera.gain, rng_cam, timers)
                 est_now = ekf.estimate() if ekf is not None else None
                 h_m = est_now.height_agl_m if est_now is not None else baro_alt_m
+                t0 = timers.add("ekf", t0)
+                R_nb = R_nb_from_euler(truth.roll_rad, truth.pitch_rad, truth.yaw_rad)
+                source = _FrameSource(renderer, truth, R_nb, r.frame.exposure_s, scn.camera.noise_std,
+                                      scn.camera.gain, rng_cam, timers)
                 pending.append((r.frame.t_us, source() if full_frame else source, h_m))
                 t0 = timers.add("render", t0)
                 _record_frame(series, truth, ekf, est_now, runlog)

@@ -37,6 +37,15 @@ def test_rotation_is_ned_frd():
     np.testing.assert_allclose(R_BC_NOMINAL @ [0, 0, 1], [0, 0, 1])
 
 
+def test_euler_matrix_matches_scipy():
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(3)
+    for roll, pitch, yaw in rng.uniform([-np.pi, -1.5, -np.pi], [np.pi, 1.5, np.pi], size=(200, 3)):
+        ref = Rotation.from_euler("ZYX", [yaw, pitch, roll]).as_matrix()
+        np.testing.assert_allclose(R_nb_from_euler(roll, pitch, yaw), ref, atol=1e-14)
+
+
 @pytest.mark.parametrize("model", ["fisheye", "pinhole"])
 def test_project_unproject_round_trip(camera, model):
     cfg = camera.config
