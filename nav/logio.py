@@ -79,7 +79,7 @@ class CsvStream:
         except KeyError:
             vals = [record.get(c) for c in self.columns]
         if not _PLAIN_TYPES.issuperset(map(type, vals)):  # the C writer's float/int output is already ours
-            vals = [_fmt(v) for v in vals]
+            vals = [v if type(v) in _PLAIN_TYPES else _fmt(v) for v in vals]
         self._writer.writerow(vals)
         now = time.monotonic()
         if now - self._last_flush >= self._flush_interval_s:
