@@ -105,9 +105,8 @@ class CameraRenderer:
         rows, cols = np.mgrid[0:h, 0:w].astype(np.float64)
         px = np.column_stack([cols.ravel(), rows.ravel()])
         rays = camera.unproject(px).reshape(h, w, 3)
-        # Unit rays per pixel in the camera frame, one contiguous float32 plane per axis.
-        self._ray_x, self._ray_y, self._ray_z = (np.ascontiguousarray(rays[..., i], dtype=np.float32)
-                                                 for i in range(3))
+        # Unit rays per pixel in the camera frame (h, w, 3) float32, rotated per pose by one cv2.transform.
+        self._rays_c = np.ascontiguousarray(rays, dtype=np.float32)
         # Angle subtended by each pixel (the larger of its two sides), from rays through its edge midpoints.
         half = np.array([0.5, 0.0])
 
@@ -118,7 +117,7 @@ class CameraRenderer:
 
         pixel_angle = np.maximum(side_angle(half), side_angle(half[::-1])).reshape(h, w)
         self._log2_pixel_angle = np.log2(pixel_angle).astype(np.float32)
-        for arr in (self._ray_x, self._ray_y, self._ray_z, self._log2_pixel_angle):
+        for arr in (self._rays_c, self._log2_pixel_angle):
             arr.setflags(write=False)
 
     # ------------------------------------------------------------------------------------------------ helpers
@@ -140,11 +139,8 @@ class CameraRenderer:
         x0, y0, x1, y1 = roi
         sl = (slice(y0, y1), slice(x0, x1))
         height_m = -float(pos[2])
-        R_nc = R_nb @ self.camera.R_bc
-        rx, ry, rz = self._ray_x[sl], self._ray_y[sl], self._ray_z[sl]
-        d_n = float(R_nc[0, 0]) * rx + float(R_nc[0, 1]) * ry + float(R_nc[0, 2]) * rz
-        d_e = float(R_nc[1, 0]) * rx + float(R_nc[1, 1]) * ry + float(R_nc[1, 2]) * rz
-        d_d = float(R_nc[2, 0]) * rx + float(R_nc[2, 1]) * ry + float(R_nc[2, 2]) * rz
+        R_nc = (R_nb @ self.camera.R_bc).astype(np.float32)
+        d_n, d_e, d_d = cv2.split(cv2.transform(self._rays_c[sl], R_nc))  # ray directions in NED
         hit = d_d > MIN_DOWN_COS
         np.clip(d_d, MIN_DOWN_COS, None, out=d_d)
         world = self.world
