@@ -4,6 +4,10 @@
 camera frames stamped at their exposure time (:meth:`process_frame`), and returns :class:`gsoe.types.GsoeStep`
 records: the template's accumulated migration since the base snapshot, in the cycle's stabilised frame.
 
+The attitude of a frame is the AHRS attitude with its latency removed (:meth:`AttitudeBuffer.compensated_at`:
+the latency is estimated against the gyro unless given); a cycle's base attitude also has the AHRS noise averaged
+out, since its heading labels the whole cycle's migration (an error there is an error of the optical course).
+
 A cycle ends (and the next one starts from the same frame, so no frame is lost) when
 
 * the template's predicted next position would leave the base image (the critical position, paper 2.4),
@@ -78,14 +82,16 @@ class _Cycle:
 class GsoeEstimator:
     """The optical estimator.  Built fully configured; feed samples in time order."""
 
-    def __init__(self, cfg: GsoeConfig, camera: CameraModel) -> None:
+    def __init__(self, cfg: GsoeConfig, camera: CameraModel, ahrs_latency_s: float | None = None) -> None:
+        """``ahrs_latency_s``: the AHRS latency (s) if known, else None: estimated from the AHRS and the gyro
+        (:class:`gsoe.attitude.AttitudeBuffer`)."""
         self.cfg = cfg
         self.camera = camera
         s = cfg.stab
         self.ref_uv = base_reference_px(cfg)
         self.vcam = VirtualNadirCamera(camera, (s.base_cross_px, s.base_along_px), self.ref_uv, s.template_px,
                                        s.focal_px, s.map_grid_px)
-        self.buffer = AttitudeBuffer(gyro_bias_tau_s=s.gyro_bias_tau_s)
+        self.buffer = AttitudeBuffer(gyro_bias_tau_s=s.gyro_bias_tau_s, latency_s=ahrs_latency_s)
         half = (s.template_px - 1) / 2.0 + cfg.cycle.edge_margin_px
         self._u_lim = (half, s.base_cross_px - 1 - half)
         self._v_lim = (half, s.base_along_px - 1 - half)
@@ -137,7 +143,8 @@ class GsoeEstimator:
                                     or image.shape[0] != h or image.shape[1] != w or image.size == 0):
             self._cycle = None
             return []
-        att = self.buffer.attitude_at(t_us)
+        # the attitude at the exposure, AHRS latency removed (gsoe.attitude); a new base averages the AHRS noise too
+        att = self.buffer.compensated_at(t_us, smooth=False)
         if att is None or not self._attitude_ok(att):
             self._cycle = None
             return []
@@ -204,6 +211,8 @@ class GsoeEstimator:
         return out
 
     def _start(self, t_us: int, image: Frame, att: Quat, height_agl_m: float) -> list[GsoeStep]:
+        # the base attitude labels the whole cycle (its heading error is the optical course's): average the AHRS
+        att = self.buffer.compensated_at(t_us, smooth=True) or att
         yaw0 = quat.to_euler321(att)[2]
         patch = self.vcam.sample_base(image, quat.to_matrix(att), yaw0)
         if not patch.valid:

@@ -154,3 +154,49 @@ def test_nadir_pixel_is_projection_of_down(camera):
         px, _ = camera.project(down_c[None])
         assert mx[36, 60] == pytest.approx(px[0, 0], abs=0.02)
         assert my[36, 60] == pytest.approx(px[0, 1], abs=0.02)
+
+
+def _fill_delayed(buf: AttitudeBuffer, latency_s: float, att_noise_rad: float, rng: np.random.Generator,
+                  t_end_s: float, ahrs_every: int = 6) -> None:
+    """Gyro on time at RATE_HZ; the AHRS at RATE_HZ / ahrs_every reports the (noisy) attitude of ``latency_s`` ago."""
+    t = np.arange(0.0, t_end_s, 1.0 / RATE_HZ)
+    rates = _body_rates(t)
+    att_late = _truth(t - latency_s)
+    for k, (ti, w) in enumerate(zip(t, rates, strict=True)):
+        t_us = int(round(ti * 1e6))
+        buf.push_imu(ImuSample(t_us, w, np.zeros(3)))
+        if k % ahrs_every == 0:
+            a = att_late[k] + rng.normal(0.0, att_noise_rad, 3)
+            buf.push_attitude(AttitudeSample(t_us, a[0], a[1], a[2]))
+
+
+def _err_deg(q, t_s: float) -> float:
+    truth = Rotation.from_euler("ZYX", _truth(np.array([t_s]))[0][::-1])
+    return float(np.degrees((_rot(q).inv() * truth).magnitude()))
+
+
+def test_ahrs_latency_estimated_and_compensated():
+    latency_s = 0.06
+    buf = AttitudeBuffer(horizon_s=10.0, gyro_bias_tau_s=0.0)
+    _fill_delayed(buf, latency_s, np.deg2rad(0.3), np.random.default_rng(5), t_end_s=40.0)
+    assert abs(buf.ahrs_latency_s - latency_s) < 0.005
+    times = np.arange(35.0, 39.5, 0.37)
+    raw = [_err_deg(buf.attitude_at(int(t * 1e6)), t) for t in times]
+    comp = [_err_deg(buf.compensated_at(int(t * 1e6), smooth=False), t) for t in times]
+    smooth = [_err_deg(buf.compensated_at(int(t * 1e6), smooth=True), t) for t in times]
+    # the truth turns at up to ~35 deg/s: 60 ms of lag is about 2 deg; the noise alone (3 axes of 0.3 deg) ~0.5 deg
+    assert np.mean(raw) > 1.0
+    assert np.mean(comp) < 0.8
+    assert np.mean(smooth) < 0.25 < np.mean(comp)
+
+
+def test_latency_known_or_absent_is_not_invented():
+    with pytest.raises(ValueError, match="latency_s"):
+        AttitudeBuffer(latency_s=-0.1)
+    buf = AttitudeBuffer(horizon_s=10.0, gyro_bias_tau_s=0.0)
+    _fill_delayed(buf, 0.0, np.deg2rad(0.3), np.random.default_rng(6), t_end_s=30.0)
+    assert buf.ahrs_latency_s < 0.005
+    fixed = AttitudeBuffer(horizon_s=10.0, gyro_bias_tau_s=0.0, latency_s=0.04)
+    _fill_delayed(fixed, 0.04, 0.0, np.random.default_rng(7), t_end_s=12.0)
+    assert fixed.ahrs_latency_s == 0.04
+    assert _err_deg(fixed.compensated_at(int(11.0e6), smooth=False), 11.0) < 0.05
