@@ -14,29 +14,50 @@ Usage (every method documents its units; frames as in :mod:`gsoe`)::
 Numerical core
     filterpy's :class:`~filterpy.kalman.ExtendedKalmanFilter` holds ``x`` and ``P`` and does the covariance
     prediction ``P = F P F' + Q``; its documented extension point ``predict_x`` runs our (nonlinear) mean
-    propagation and sets ``F``.  The update is ours, because filterpy's inverts ``S`` and has no gating: the
-    innovation covariance is factorised with ``solve``, the NIS is gated against a named threshold, the covariance
-    is updated in Joseph form and symmetrised, and nothing is committed unless the result is finite (the state is
-    copied before the correction, as navlie does).  When an innovation variance falls below its observation
-    variance (``H P H' < 0``: ``P`` has lost positive definiteness) the states the measurement touches get their
-    initial covariance back and the measurement is skipped (PX4 EKF2).
+    propagation and sets ``F`` (written in place into one preallocated matrix: only its IMU-dependent entries
+    change).  The update is ours, because filterpy's inverts ``S`` and has no gating; it works on the filterpy
+    object's ``x`` and ``P`` arrays directly (the hot path: about 150 updates per second, where every NumPy call
+    costs 1-3 µs whatever its size, so the count of calls is the cost).  The NIS is gated against a named threshold.
+    The covariance is the Joseph form ``(I - K H) P (I - K H)' + K R K'`` of the gain actually used, which with the
+    partial-update gain ``K = D K_opt`` (below; ``D = diag(g)``) expands exactly to ``P - A o G`` with
+    ``A = P H' S^-1 H P`` and ``G_ij = 1 - (1 - g_i)(1 - g_j)``: the optimal-gain update everywhere except the
+    block of the partial-update states.  ``A = L L'`` is formed from
+    ``L = P H' C^-T`` (``S = C C'``, Cholesky in closed form for the scalar, 2-D and GNSS updates), so the
+    update is two small products and a subtraction, and ``P`` stays symmetric to the last bit (``L L'`` is, with
+    every BLAS that sums each entry's products in one order; the prediction symmetrises in any case).  Nothing is
+    committed unless the update's factors are finite (the prior is kept otherwise).  When an innovation variance
+    falls below its observation variance (``H P H' < 0``: ``P`` has lost positive definiteness) the states the
+    measurement touches get their initial covariance back and the measurement is skipped (PX4 EKF2).
 
 Prediction
-    ``v' = R_z(-yaw_bias) R_nb_ahrs (f_b - accel_bias_b) + g_n`` and ``p' = v``; IMU samples are accumulated (sums of
-    ``R_nb f dt`` and ``R_nb dt``) into one prediction of at least ``predict_period_s`` (the mean is exact for a
-    piecewise constant specific force; the bias and heading Jacobians use the sums).  Process noise from
-    :class:`~fusion.config.EkfConfig` (white acceleration on each NED axis, random walks on the slow states).
+    ``v' = R_z(-yaw_bias) R_nb_ahrs (I + [omega_b x] att_delay) (f_b - accel_bias_b) + g_n`` and ``p' = v``: the
+    AHRS attitude stamped ``t`` describes the body at ``t - att_delay``, and the gyro's body rates ``omega_b``
+    carry it forward (first order; the ``att_delay omega_b x accel_bias_b`` term is dropped).  The per-IMU-sample
+    work is a few floating-point additions: samples with the same AHRS attitude are summed as ``sum f_b dt``,
+    ``sum (omega_b x f_b) dt`` and their first moments ``... dt t_mid`` (``t_mid``: the sample interval's midpoint
+    from the start of the prediction); when the attitude changes, or when the covariance is predicted, these sums
+    are rotated once by ``R_nb`` into ``sum R_nb f dt``, ``sum R_nb dt``, ``sum R_nb (omega x f) dt`` and their
+    moments (:class:`ImuIncrement`).  With the first moments the mean of one prediction over many samples equals
+    the sample-by-sample integration of a piecewise constant specific force (velocity and position, bias, heading
+    and delay Jacobians included; tests check it), so the covariance rate is a free choice: the covariance is
+    predicted at most every ``predict_period_s`` while only IMU samples arrive, and once at the stamp of a
+    measurement (all measurements with one stamp share it).  Process noise from :class:`~fusion.config.EkfConfig`
+    (white acceleration on each NED axis, random walks on the slow states).  IMU samples wait in their FIFO until
+    something needs them (a due measurement, a reader, a prediction period behind the horizon) and are then
+    processed in one loop; the result does not depend on when that happens.
 
 Time (STYLE section 6)
-    Every input carries its ``t_us``.  Inputs go into one time-ordered buffer and the filter runs on a *delayed
-    fusion horizon* ``fusion_delay_s`` behind the newest IMU sample (PX4 EKF2's ``pop_first_older_than``): a
-    measurement is fused at its own stamp, the state being predicted from the last IMU sample to it.  An input older
-    than what the filter has already processed is rejected with reason ``late`` in its status.  The estimate refers
-    to the horizon's time ``NavEstimate.t_us`` (at most ``fusion_delay_s + predict_period_s`` behind the newest IMU
-    sample); give ``fusion_delay_s = 0`` when samples are fed in time order.  Samples with the same stamp are
-    processed in a fixed order (IMU, GNSS, baro, airspeed + sideslip, optical, clone) whatever their arrival order,
-    so a replay with other latencies gives the same filter.  The synthetic sideslip uses the AHRS attitude of the
-    last IMU sample at or before its stamp.
+    Every input carries its ``t_us``.  IMU samples (in stamp order) wait in a FIFO, measurements in a time-ordered
+    heap, and the filter runs on a *delayed fusion horizon* ``fusion_delay_s`` behind the newest IMU sample (PX4
+    EKF2's ``pop_first_older_than``): a measurement is fused at its own stamp, the state being predicted from the
+    last IMU sample to it (zero-order hold).  An input older than what the filter has already processed is rejected
+    with reason ``late`` in its status.  The estimate refers to the horizon's time ``NavEstimate.t_us`` (at most
+    ``fusion_delay_s + predict_period_s`` behind the newest IMU sample); give ``fusion_delay_s = 0`` when samples are
+    fed in time order.  Samples with the same stamp are processed in a fixed order (IMU, GNSS, baro, airspeed +
+    sideslip, optical, clone) whatever their arrival order, so a replay with other latencies gives the same filter.
+    The synthetic sideslip uses the AHRS attitude of the last IMU sample at or before its stamp.  ``estimate()`` is
+    computed once per filter state (repeated calls without a state change return the same object, whose arrays are
+    read-only).
 
 Optical cycles (stochastic cloning)
     When a step of a new cycle (a new ``cycle_id``) is pushed, a *clone event* is scheduled at the cycle's
@@ -77,6 +98,8 @@ import heapq
 import itertools
 import logging
 import math
+from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -91,7 +114,6 @@ from fusion.measurements import (
     BaroAltitude,
     GnssPosition,
     GnssVelocity,
-    MeasurementModel,
     OpticalDisplacement,
     SyntheticSideslip,
     TrueAirspeed,
@@ -106,10 +128,17 @@ Vec = NDArray[np.float64]
 Mat = NDArray[np.float64]
 
 US_PER_S = 1_000_000
+S_PER_US = 1e-6
 #: Relative tolerance of the covariance-health check: ``H P H'`` counts as negative (the PX4 condition "innovation
 #: variance below observation variance") when a diagonal element is below ``-COV_RESET_REL_TOL * R``; smaller
 #: negatives are rounding of an exactly zero variance (e.g. a clone taken this instant).
 COV_RESET_REL_TOL = 1e-9
+#: Process-noise matrices kept per prediction length (µs); the cache is emptied when it grows beyond this (the
+#: lengths are few when samples come on a clock grid, arbitrary in replays of jittery logs).
+Q_CACHE_MAX = 256
+
+#: ``|cos(pitch)|`` below which the 3-2-1 yaw rate is undefined (pitch within 0.06 deg of +-90 deg) and taken as 0.
+MIN_COS_PITCH = 1e-3
 
 #: Aid sources with a status record, in logging order.
 AID_SOURCES: tuple[str, ...] = ("imu", "optical", "airspeed", "sideslip", "baro", "gnss_pos", "gnss_vel")
@@ -145,7 +174,7 @@ _PRIO = {"imu": 0, "gnss_pos": 1, "gnss_vel": 2, "baro": 3, "airspeed": 4, "opti
 
 
 def _is_int(t: Any) -> bool:
-    return isinstance(t, int | np.integer) and not isinstance(t, bool)
+    return type(t) is int or (isinstance(t, int | np.integer) and not isinstance(t, bool))
 
 
 def _finite(*values: Any) -> bool:
@@ -164,17 +193,29 @@ def _finite(*values: Any) -> bool:
     return True
 
 
-def R_nb_321(roll_rad: float, pitch_rad: float, yaw_rad: float) -> Mat:
-    """Body-to-NED rotation from 3-2-1 Euler angles; the same as :func:`gsoe.rotation.R_nb_from_euler` (a test
-    checks it) written out, because building a scipy ``Rotation`` per IMU sample costs more than the EKF step."""
+def _rot_rows(roll_rad: float, pitch_rad: float, yaw_rad: float) -> tuple[float, ...]:
+    """The nine entries (row by row) of the body-to-NED rotation from 3-2-1 Euler angles."""
     cr, sr = math.cos(roll_rad), math.sin(roll_rad)
     cp, sp = math.cos(pitch_rad), math.sin(pitch_rad)
     cy, sy = math.cos(yaw_rad), math.sin(yaw_rad)
-    return np.array([
-        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-        [-sp, cp * sr, cp * cr],
-    ])
+    return (cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr,
+            sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr,
+            -sp, cp * sr, cp * cr)
+
+
+def _yaw_rate(att: AttitudeSample, rates_b: tuple[float, float, float]) -> float:
+    """Rate of the 3-2-1 yaw angle (rad/s) from body rates ``(p, q, r)``: ``(q sin(roll) + r cos(roll)) / cos(pitch)``
+    (0 at the 3-2-1 singularity, ``|cos(pitch)| < MIN_COS_PITCH``)."""
+    cp = math.cos(att.pitch_rad)
+    if abs(cp) < MIN_COS_PITCH:
+        return 0.0
+    return (rates_b[1] * math.sin(att.roll_rad) + rates_b[2] * math.cos(att.roll_rad)) / cp
+
+
+def R_nb_321(roll_rad: float, pitch_rad: float, yaw_rad: float) -> Mat:
+    """Body-to-NED rotation from 3-2-1 Euler angles; the same as :func:`gsoe.rotation.R_nb_from_euler` (a test
+    checks it) written out, because building a scipy ``Rotation`` per IMU sample costs more than the EKF step."""
+    return np.array(_rot_rows(roll_rad, pitch_rad, yaw_rad)).reshape(3, 3)
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -214,24 +255,28 @@ class AidStatus:
 
 
 class _StatusRow:
-    """Mutable twin of :class:`AidStatus` updated at sample rate (frozen records are built only in ``status()``)."""
+    """Mutable twin of :class:`AidStatus` updated at sample rate (the frozen record is built, and kept until the next
+    change, only when ``status()`` asks for it)."""
 
     __slots__ = ("source", "t_us", "innovation", "innovation_var", "test_ratio", "fused", "rejected", "reason",
-                 "t_last_fuse_us", "n_fused", "n_rejected")
+                 "t_last_fuse_us", "n_fused", "n_rejected", "_snap")
 
     def __init__(self, source: str) -> None:
         self.source = source
         self.t_us = -1
-        self.innovation: Vec | None = None
-        self.innovation_var: Vec | None = None
+        self.innovation: tuple[float, ...] = ()
+        self.innovation_var: tuple[float, ...] = ()
         self.test_ratio = math.nan
         self.fused = self.rejected = False
         self.reason = ""
         self.t_last_fuse_us = -1
         self.n_fused = self.n_rejected = 0
+        self._snap: AidStatus | None = None
 
     def set(self, t_us: int, *, fused: bool = False, rejected: bool = False, reason: str = "",
-            innovation: Vec | None = None, innovation_var: Vec | None = None, test_ratio: float = math.nan) -> None:
+            innovation: tuple[float, ...] = (), innovation_var: tuple[float, ...] = (),
+            test_ratio: float = math.nan) -> None:
+        """Record one processed sample; ``innovation``/``innovation_var`` are tuples of floats (measurement units)."""
         self.t_us = t_us
         self.fused, self.rejected, self.reason = fused, rejected, reason
         self.innovation, self.innovation_var, self.test_ratio = innovation, innovation_var, test_ratio
@@ -240,14 +285,24 @@ class _StatusRow:
             self.n_fused += 1
         if rejected:
             self.n_rejected += 1
+        self._snap = None
+
+    def fused_now(self, t_us: int, innovation: tuple[float, ...], innovation_var: tuple[float, ...],
+                  test_ratio: float) -> None:
+        """``set(t_us, fused=True, ...)`` without keyword handling (the per-update path)."""
+        self.t_us = self.t_last_fuse_us = t_us
+        self.fused, self.rejected, self.reason = True, False, ""
+        self.innovation, self.innovation_var, self.test_ratio = innovation, innovation_var, test_ratio
+        self.n_fused += 1
+        self._snap = None
 
     def snapshot(self) -> AidStatus:
-        return AidStatus(
-            self.source, t_us=self.t_us,
-            innovation=tuple(float(v) for v in self.innovation) if self.innovation is not None else (),
-            innovation_var=tuple(float(v) for v in self.innovation_var) if self.innovation_var is not None else (),
-            test_ratio=float(self.test_ratio), fused=self.fused, rejected=self.rejected, reason=self.reason,
-            t_last_fuse_us=self.t_last_fuse_us, n_fused=self.n_fused, n_rejected=self.n_rejected)
+        if self._snap is None:
+            self._snap = AidStatus(
+                self.source, t_us=self.t_us, innovation=self.innovation, innovation_var=self.innovation_var,
+                test_ratio=float(self.test_ratio), fused=self.fused, rejected=self.rejected, reason=self.reason,
+                t_last_fuse_us=self.t_last_fuse_us, n_fused=self.n_fused, n_rejected=self.n_rejected)
+        return self._snap
 
 
 @dataclass(frozen=True, slots=True)
@@ -257,9 +312,10 @@ class NavEstimate:
     Positions in the local NED frame (m); ``height_m`` above the reference ground, ``height_agl_m`` above the ground
     under the aircraft.  Velocities are ground velocities (m/s).  Angles in radians, clockwise from north:
     ``course_rad`` (of the ground velocity, [0, 2 pi)), ``heading_rad`` (AHRS yaw corrected by the estimated
-    heading error), ``drift_rad`` = course - heading in [-pi, pi) (positive: track to the right of the heading),
-    ``ata_rad`` = the paper's eq. 12 actual tracking angle ``beta + psi + drift``, i.e. the EKF's course over
-    ground.  ``wind_ne_m_s`` is the velocity of the air (blowing *to*); ``wind_from_rad`` the direction it blows
+    heading error and, with the yaw rate, by the estimated AHRS delay), ``drift_rad`` = course - heading in
+    [-pi, pi) (positive: track to the right of the heading), ``ata_rad`` = the paper's eq. 12 actual tracking angle
+    ``beta + psi + drift``, i.e. the EKF's course over ground.  ``wind_ne_m_s`` is the velocity of the air (blowing
+    *to*); ``wind_from_rad`` the direction it blows
     *from* (MAVLink WIND).  Angle sigmas are capped at pi where the angle is undefined (speed near zero).
     ``yaw_bias_rad``, ``opt_rot_rad``, ``baro_bias_m``, ``terrain_h_m``, ``tas_scale``, ``accel_bias_b_m_s2``: the
     calibration states (:mod:`fusion.state`).  ``cov_pvw`` is the 6x6 covariance of ``[pos_ne, vel_ne, wind_ne]``
@@ -336,12 +392,27 @@ class NavEstimate:
 # --------------------------------------------------------------------------------------------------------------
 @dataclass(slots=True)
 class ImuIncrement:
-    """IMU input of one prediction over ``dt_s``: ``dv_ahrs_n = sum(R_nb f_b dt)`` (m/s, AHRS-NED, no gravity, no
-    bias correction) and ``int_R_nb = sum(R_nb dt)`` (s) for the bias Jacobian."""
+    """IMU input of one prediction over ``dt_s`` (AHRS-NED, no gravity, no bias correction).
+
+    ``dv_ahrs_n = sum(R_nb f_b dt)`` (m/s) and ``int_R_nb = sum(R_nb dt)`` (s), and their first moments
+    ``dv_moment_n = sum(R_nb f_b dt t_mid)`` (m) and ``int_R_nb_moment = sum(R_nb dt t_mid)`` (s^2), ``t_mid`` being
+    each sample interval's midpoint measured from the start of the increment.  The moments make the position change
+    of a piecewise constant specific force exact: ``sum(R f dt (T - t_mid)) = T dv - moment``.  ``None`` (the
+    default): the increment is spread evenly over ``dt_s`` (moment = value * dt_s / 2, e.g. one sample held).
+    Arrays, or (the filter's own per-sample path) nested sequences of floats of the same shapes.
+
+    ``dv_delay_n = sum(R_nb (omega_b x f_b) dt)`` (m/s^2; ``omega_b`` the gyro's body rates) and its first moment
+    ``dv_delay_moment_n`` (m/s): the velocity (position) change per second of AHRS delay ``att_delay``, since the
+    true attitude is ``R_nb (I + [omega x] att_delay)``.  ``None``: no rates (the delay has no effect).
+    """
 
     dt_s: float = 0.0
-    dv_ahrs_n: Vec = field(default_factory=lambda: np.zeros(3))
-    int_R_nb: Mat = field(default_factory=lambda: np.zeros((3, 3)))
+    dv_ahrs_n: Vec | Sequence[float] = field(default_factory=lambda: np.zeros(3))
+    int_R_nb: Mat | Sequence[Sequence[float]] = field(default_factory=lambda: np.zeros((3, 3)))
+    dv_moment_n: Vec | Sequence[float] | None = None
+    int_R_nb_moment: Mat | Sequence[Sequence[float]] | None = None
+    dv_delay_n: Vec | Sequence[float] | None = None
+    dv_delay_moment_n: Vec | Sequence[float] | None = None
 
 
 _I_POS = S.idx("pos_ned")
@@ -349,33 +420,144 @@ _I_VEL = S.idx("vel_ned")
 _I_CLONE = S.idx("base_pos_ned")
 _I_YAW = S.yaw_bias.start
 _I_PVW = S.idx("pos_ne", "vel_ne", "wind_ne")
+_IX_PVW = np.ix_(_I_PVW, _I_PVW)
 _POS, _VEL, _BA = S.pos_ned, S.vel_ned, S.accel_bias_b
 _EYE = np.eye(S.dim)
 _EYE.flags.writeable = False
-_F_POS_VEL = np.ravel_multi_index((_I_POS, _I_VEL), (S.dim, S.dim))     # flat indices of dpos/dvel in F
+_I_BA = S.idx("accel_bias_b")
+_I_DELAY = S.att_delay.start
+# flat indices of the IMU-dependent entries of F, in the order _propagate_into lists them: d pos / d vel (N, E, D),
+# d pos / d accel_bias_b (3 x 3, row by row), d vel / d accel_bias_b, d(pos_n, pos_e, vel_n, vel_e) / d yaw_bias,
+# d pos / d att_delay, d vel / d att_delay
+_F_IMU = np.concatenate([
+    np.ravel_multi_index((_I_POS, _I_VEL), (S.dim, S.dim)),
+    np.ravel_multi_index((np.repeat(_I_POS, 3), np.tile(_I_BA, 3)), (S.dim, S.dim)),
+    np.ravel_multi_index((np.repeat(_I_VEL, 3), np.tile(_I_BA, 3)), (S.dim, S.dim)),
+    np.ravel_multi_index(([S.pos_ne.start, S.pos_ne.start + 1, S.vel_ne.start, S.vel_ne.start + 1], [_I_YAW] * 4),
+                         (S.dim, S.dim)),
+    np.ravel_multi_index((_I_POS, [S.att_delay.start] * 3), (S.dim, S.dim)),
+    np.ravel_multi_index((_I_VEL, [S.att_delay.start] * 3), (S.dim, S.dim)),
+])
+# flat indices of the position/velocity blocks of Q (north, east, down in turn)
+_Q_PP = np.ravel_multi_index((_I_POS, _I_POS), (S.dim, S.dim))
+_Q_PV = np.ravel_multi_index((_I_POS, _I_VEL), (S.dim, S.dim))
+_Q_VP = np.ravel_multi_index((_I_VEL, _I_POS), (S.dim, S.dim))
+_Q_VV = np.ravel_multi_index((_I_VEL, _I_VEL), (S.dim, S.dim))
+_HALF_G = 0.5 * STANDARD_GRAVITY_M_S2
+_ACC_LEN = 30           # floats of the accumulated increment (see NavEkf.__init__)
+_SEG_LEN = 14           # floats of an open segment (see NavEkf.__init__)
+# flat indices of the covariance entries NavEkf._estimate reads, in its order: velocity N/E (nn, ne, ee), yaw bias
+# (yy, vel_n-yaw, vel_e-yaw), wind (nn, ne, ee), down position, terrain, down position-terrain, AHRS delay (dd,
+# yaw-delay, vel_n-delay, vel_e-delay)
+_EST_FLAT = np.ravel_multi_index(tuple(np.array([
+    (S.vel_ne.start, S.vel_ne.start), (S.vel_ne.start, S.vel_ne.start + 1), (S.vel_ne.start + 1, S.vel_ne.start + 1),
+    (_I_YAW, _I_YAW), (S.vel_ne.start, _I_YAW), (S.vel_ne.start + 1, _I_YAW),
+    (S.wind_ne.start, S.wind_ne.start), (S.wind_ne.start, S.wind_ne.start + 1),
+    (S.wind_ne.start + 1, S.wind_ne.start + 1),
+    (S.pos_d.start, S.pos_d.start), (S.terrain_h.start, S.terrain_h.start), (S.pos_d.start, S.terrain_h.start),
+    (S.att_delay.start, S.att_delay.start), (_I_YAW, S.att_delay.start),
+    (S.vel_ne.start, S.att_delay.start), (S.vel_ne.start + 1, S.att_delay.start),
+]).T), (S.dim, S.dim))
+
+
+def _floats(a: Any) -> Any:
+    """Python floats (nested lists) of an array; sequences pass unchanged."""
+    return a.tolist() if isinstance(a, np.ndarray) else a
+
+
+def _chol_inv(Sm: list[list[float]]) -> list[list[float]] | None:
+    """``C^-1`` (lower triangular, nested lists) of the Cholesky factor ``S = C C'`` of a small symmetric matrix;
+    ``None`` if ``S`` is not positive definite.  Floats: for m <= 3 this is cheaper than NumPy's calls."""
+    m = len(Sm)
+    C = [[0.0] * m for _ in range(m)]
+    for i in range(m):
+        for j in range(i + 1):
+            v = Sm[i][j] - sum(C[i][k] * C[j][k] for k in range(j))
+            if i == j:
+                if not v > 0.0:
+                    return None
+                C[i][i] = math.sqrt(v)
+            else:
+                C[i][j] = v / C[j][j]
+    Ci = [[0.0] * m for _ in range(m)]
+    for i in range(m):
+        Ci[i][i] = 1.0 / C[i][i]
+        for j in range(i):
+            Ci[i][j] = -sum(C[i][k] * Ci[k][j] for k in range(j, i)) / C[i][i]
+    return Ci
+
+
+def _propagate_into(x: Vec, inc: ImuIncrement, F: Mat) -> Vec:
+    """Mean propagation over one increment; returns the new state and writes the IMU-dependent entries of the Jacobian
+    ``F = d x_new / d x`` into ``F`` (its other entries must be those of the identity).
+
+    Scalar arithmetic on Python floats: the 3-vectors and 3 x 3 blocks here cost ~1-2 µs per NumPy call."""
+    T = inc.dt_s
+    (u0, u1, u2), (w0, w1, w2), (z0, z1, z2) = M = _floats(inc.int_R_nb)     # sum R dt
+    dv0, dv1, dv2 = _floats(inc.dv_ahrs_n)                                    # sum R f dt
+    if inc.dv_moment_n is None or inc.int_R_nb_moment is None:
+        h = 0.5 * T
+        (a0, a1, a2), (e0, e1, e2), (d0, d1, d2) = [[h * v for v in r] for r in M]
+        dq0, dq1, dq2 = h * dv0, h * dv1, h * dv2
+    else:                                                 # sum R dt (T - t_mid), sum R f dt (T - t_mid)
+        (a0, a1, a2), (e0, e1, e2), (d0, d1, d2) = _floats(inc.int_R_nb_moment)
+        a0, a1, a2, e0, e1, e2 = T * u0 - a0, T * u1 - a1, T * u2 - a2, T * w0 - e0, T * w1 - e1, T * w2 - e2
+        d0, d1, d2 = T * z0 - d0, T * z1 - d1, T * z2 - d2
+        n0, n1, n2 = _floats(inc.dv_moment_n)
+        dq0, dq1, dq2 = T * dv0 - n0, T * dv1 - n1, T * dv2 - n2
+    xl = x.tolist()
+    b0, b1, b2 = xl[_BA.start], xl[_BA.start + 1], xl[_BA.start + 2]
+    m0 = dv0 - (u0 * b0 + u1 * b1 + u2 * b2)              # sum R (f - b) dt
+    m1 = dv1 - (w0 * b0 + w1 * b1 + w2 * b2)
+    m2 = dv2 - (z0 * b0 + z1 * b1 + z2 * b2)
+    q0 = dq0 - (a0 * b0 + a1 * b1 + a2 * b2)              # sum R (f - b) dt (T - t_mid)
+    q1 = dq1 - (e0 * b0 + e1 * b1 + e2 * b2)
+    q2 = dq2 - (d0 * b0 + d1 * b1 + d2 * b2)
+    # the AHRS delay: + tau sum R (omega x f) dt (and its position moment); the tau omega x b term is negligible
+    if inc.dv_delay_n is None:
+        k0 = k1 = k2 = j0 = j1 = j2 = 0.0
+    else:
+        k0, k1, k2 = _floats(inc.dv_delay_n)
+        if inc.dv_delay_moment_n is None:
+            j0, j1, j2 = 0.5 * T * k0, 0.5 * T * k1, 0.5 * T * k2
+        else:
+            n0, n1, n2 = _floats(inc.dv_delay_moment_n)
+            j0, j1, j2 = T * k0 - n0, T * k1 - n1, T * k2 - n2
+        tau = xl[_I_DELAY]
+        m0, m1, m2 = m0 + tau * k0, m1 + tau * k1, m2 + tau * k2
+        q0, q1, q2 = q0 + tau * j0, q1 + tau * j1, q2 + tau * j2
+    yb = xl[_I_YAW]
+    c, s = math.cos(yb), math.sin(yb)                     # R_z(-yaw_bias) = [[c, s], [-s, c]]
+    mn, me = c * m0 + s * m1, -s * m0 + c * m1            # velocity change without gravity, N/E
+    qn, qe = c * q0 + s * q1, -s * q0 + c * q1            # position change beyond v T, without gravity, N/E
+    ip, iv = _POS.start, _VEL.start
+    vn, ve, vd = xl[iv], xl[iv + 1], xl[iv + 2]
+    xl[ip] += vn * T + qn
+    xl[ip + 1] += ve * T + qe
+    xl[ip + 2] += vd * T + q2 + _HALF_G * T * T
+    xl[iv] = vn + mn
+    xl[iv + 1] = ve + me
+    xl[iv + 2] = vd + m2 + STANDARD_GRAVITY_M_S2 * T
+    # -R_z(-yaw_bias) @ Mq (position rows; Mq = [a; e; d]) and -R_z(-yaw_bias) @ M (velocity rows; M = [u; w; z])
+    F.flat[_F_IMU] = (
+        T, T, T,
+        -(c * a0 + s * e0), -(c * a1 + s * e1), -(c * a2 + s * e2),
+        s * a0 - c * e0, s * a1 - c * e1, s * a2 - c * e2,
+        -d0, -d1, -d2,
+        -(c * u0 + s * w0), -(c * u1 + s * w1), -(c * u2 + s * w2),
+        s * u0 - c * w0, s * u1 - c * w1, s * u2 - c * w2,
+        -z0, -z1, -z2,
+        qe, -qn, me, -mn,                                 # d R_z(-b) u / d b = (u_E', -u_N') of the rotated u
+        c * j0 + s * j1, -s * j0 + c * j1, j2,            # d pos / d att_delay = R_z(-b) sum R (w x f) dt (T - t)
+        c * k0 + s * k1, -s * k0 + c * k1, k2,            # d vel / d att_delay = R_z(-b) sum R (w x f) dt
+    )
+    return np.array(xl)
 
 
 def propagate(x: Vec, inc: ImuIncrement) -> tuple[Vec, Mat]:
     """Mean propagation over one increment and its Jacobian ``F = d x_new / d x`` (n x n)."""
-    T = inc.dt_s
-    m = inc.dv_ahrs_n - inc.int_R_nb @ x[_BA]
-    c, s = math.cos(x[_I_YAW]), math.sin(x[_I_YAW])      # R_z(-yaw_bias) = [[c, s], [-s, c]]
-    mp = np.array([c * m[0] + s * m[1], -s * m[0] + c * m[1], m[2]])
-    dv = mp.copy()
-    dv[2] += STANDARD_GRAVITY_M_S2 * T
-    xn = x.copy()
-    v = x[_VEL]
-    xn[_POS] = x[_POS] + v * T + 0.5 * T * dv
-    xn[_VEL] = v + dv
     F = _EYE.copy()
-    F.flat[_F_POS_VEL] = T
-    Rz = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
-    A = -(Rz @ inc.int_R_nb)
-    F[_VEL, _BA] = A
-    F[_POS, _BA] = 0.5 * T * A
-    F[_VEL, _I_YAW] = (mp[1], -mp[0], 0.0)
-    F[_POS, _I_YAW] = (0.5 * T * mp[1], -0.5 * T * mp[0], 0.0)
-    return xn, F
+    return _propagate_into(x, inc, F), F
 
 
 class _FilterCore(ExtendedKalmanFilter):
@@ -386,43 +568,50 @@ class _FilterCore(ExtendedKalmanFilter):
         super().__init__(dim_x=S.dim, dim_z=1)
         self.x = x0
         self.P = P0
+        self.F = np.eye(S.dim)             # identity apart from the entries _propagate_into writes every time
         self._cfg = cfg
         self._q_cache: dict[int, Mat] = {}
+        rw = np.zeros(S.dim)               # random-walk variance rates of the slow states (per second)
+        for name, q in (("wind_ne", cfg.wind_rw_m_s_per_rt_s), ("accel_bias_b", cfg.accel_bias_rw_m_s2_per_rt_s),
+                        ("yaw_bias", cfg.yaw_bias_rw_rad_per_rt_s), ("opt_rot", cfg.opt_rot_rw_rad_per_rt_s),
+                        ("baro_bias", cfg.baro_bias_rw_m_per_rt_s), ("terrain_h", cfg.terrain_rw_m_per_rt_s),
+                        ("tas_scale", cfg.tas_scale_rw_per_rt_s), ("att_delay", cfg.att_delay_rw_s_per_rt_s)):
+            rw[getattr(S, name)] = q * q
+        self._rw_var_rate = rw
+        self.n_predictions = 0
 
     def process_noise(self, dt_s: float) -> Mat:
         key = round(dt_s * US_PER_S)
         Q = self._q_cache.get(key)
         if Q is None:
-            c = self._cfg
-            Q = np.zeros((S.dim, S.dim))
-            qpv = Q_continuous_white_noise(dim=2, dt=dt_s, spectral_density=c.accel_noise_m_s2_per_rt_hz**2)
-            for ip, iv in zip(_I_POS, _I_VEL, strict=True):
-                Q[np.ix_([ip, iv], [ip, iv])] = qpv
-            rw = {
-                "wind_ne": c.wind_rw_m_s_per_rt_s,
-                "accel_bias_b": c.accel_bias_rw_m_s2_per_rt_s,
-                "yaw_bias": c.yaw_bias_rw_rad_per_rt_s,
-                "opt_rot": c.opt_rot_rw_rad_per_rt_s,
-                "baro_bias": c.baro_bias_rw_m_per_rt_s,
-                "terrain_h": c.terrain_rw_m_per_rt_s,
-                "tas_scale": c.tas_scale_rw_per_rt_s,
-            }
-            for name, q in rw.items():
-                i = S.idx(name)
-                Q[i, i] = q * q * dt_s
-            if len(self._q_cache) > 64:
+            Q = np.diag(self._rw_var_rate * dt_s)
+            qpv = Q_continuous_white_noise(dim=2, dt=dt_s, spectral_density=self._cfg.accel_noise_m_s2_per_rt_hz**2)
+            Q.flat[_Q_PP] = qpv[0, 0]
+            Q.flat[_Q_PV] = qpv[0, 1]
+            Q.flat[_Q_VP] = qpv[1, 0]
+            Q.flat[_Q_VV] = qpv[1, 1]
+            if len(self._q_cache) >= Q_CACHE_MAX:
                 self._q_cache.clear()
+            Q.flags.writeable = False
             self._q_cache[key] = Q
         return Q
 
     def predict_x(self, u: ImuIncrement = None) -> None:  # type: ignore[assignment]
-        self.x, self.F = propagate(self.x, u)
+        self.x = _propagate_into(self.x, u, self.F)
         self.Q = self.process_noise(u.dt_s)
 
     def predict(self, u: ImuIncrement = None) -> None:  # type: ignore[assignment]
         """filterpy's prediction, then ``P`` symmetrised (``F P F'`` is symmetric only up to rounding)."""
         super().predict(u)
-        self.P = 0.5 * (self.P + self.P.T)
+        P = self.P
+        P += P.T
+        P *= 0.5
+        self.n_predictions += 1
+
+
+def _read_only(a: Vec) -> Vec:
+    a.flags.writeable = False
+    return a
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -479,18 +668,37 @@ class NavEkf:
         # partial-update (Schmidt) states: their rows of every gain are scaled down (see the module docstring)
         self._gain_scale = np.ones(S.dim)
         self._gain_scale[S.tas_scale] = cfg.tas_scale_update_fraction
+        part = [(int(i), 1.0 - float(self._gain_scale[i])) for i in np.flatnonzero(self._gain_scale != 1.0)]
+        # The Joseph form with the gain K = D K_opt (D = diag(g)), P - K H P - P H' K' + K S K', is P - A o G with
+        # A = P H' S^-1 H P and G_ij = g_i + g_j - g_i g_j = 1 - (1 - g_i)(1 - g_j): the optimal-gain update except
+        # in the block of these states, where A_ij (1 - g_i)(1 - g_j) is given back.  The correction is D K_opt y.
+        self._schmidt = [(i, j, ci * cj) for i, ci in part for j, cj in part]   # (i, j, (1 - g_i)(1 - g_j))
         P0 = np.diag(self._init_var)
         P0[np.ix_(_I_CLONE, _I_POS)] = P0[np.ix_(_I_POS, _I_POS)]
         P0[np.ix_(_I_POS, _I_CLONE)] = P0[np.ix_(_I_POS, _I_POS)]
         self._kf = _FilterCore(x0, P0, cfg)
         self._t_x_us = int(t_us)           # time of the filter state (the fusion horizon)
-        self._t_in_us = int(t_us)          # inputs consumed up to here (>= _t_x_us; the rest is in _acc)
-        self._acc = ImuIncrement()
-        self._held: tuple[Vec, Mat] | None = None   # last IMU sample: (R_nb f_b, R_nb)
+        self._t_in_us = int(t_us)          # inputs consumed up to here (>= _t_x_us; the rest is accumulated)
+        # The covariance prediction being accumulated over [_t_x_us, _t_in_us] (ImuIncrement), as floats: sum R f dt
+        # (3), sum R f dt t_mid (3), sum R dt (9, row by row), sum R dt t_mid (9), sum R (w x f) dt (3), sum R (w x f)
+        # dt t_mid (3).  Python floats throughout the per-sample path: a NumPy call on a 3-vector costs more than the
+        # arithmetic.
+        self._acc = [0.0] * _ACC_LEN
+        # the open segment of samples under the attitude _Rl: sum f dt (3), sum f dt t_mid (3), sum dt,
+        # sum dt t_mid, sum (w x f) dt (3), sum (w x f) dt t_mid (3) (rotated into _acc when the attitude changes or
+        # the covariance is predicted)
+        self._seg = [0.0] * _SEG_LEN
+        self._seg_open = False
+        # specific force (FRD) and gyro rate x specific force of the last IMU sample
+        self._f_held: tuple[float, float, float, float, float, float] | None = None
+        self._rates_held = (0.0, 0.0, 0.0)               # body rates of the last IMU sample (rad/s, FRD)
         self._att: AttitudeSample | None = None          # AHRS attitude of the last processed IMU sample
         self._att_out: AttitudeSample | None = None      # first pushed attitude (output before any is processed)
-        self._R_nb: Mat | None = None
+        self._Rl: tuple[float, ...] | None = None        # its rotation (body to AHRS-NED), row by row
+        self._R_nb: Mat | None = None                    # the same as a matrix (built when a model needs it)
+        self._beta_model: SyntheticSideslip | None = None
         self._newest_imu_us: int | None = None
+        self._imu_q: deque[tuple[int, float, float, float, float, float, float, AttitudeSample]] = deque()
         self._heap: list[tuple[int, int, int, str, Any]] = []
         self._seq = itertools.count()
         self._n_meas_buffered = 0
@@ -498,54 +706,103 @@ class NavEkf:
         self._period_us = round(cfg.predict_period_s * US_PER_S)
         self._gap_us = round(cfg.imu_max_gap_s * US_PER_S)
         self._att_age_us = round(cfg.att_max_age_s * US_PER_S)
+        self._r_tas = float(TrueAirspeed.noise(cfg)[0, 0])
+        self._r_beta = float(SyntheticSideslip.noise(cfg)[0, 0])
+        self._r_baro = float(BaroAltitude.noise(cfg)[0, 0])
         self._clone_cycle: int | None = None
         self._last_cycle_pushed: int | None = None
         self._reject_since: dict[str, int | None] = {"gnss_pos": None, "gnss_vel": None}
         self._st: dict[str, _StatusRow] = {s: _StatusRow(s) for s in AID_SOURCES}
+        self._st_imu = self._st["imu"]
         self._buffer_full_warned = False
         self._gnss_pos_last_us: int | None = None
+        self._est: NavEstimate | None = None             # estimate() of the current state (None: to be computed)
 
     # ----------------------------------------------------------------------------------------------------------
     # public API
     @property
     def t_us(self) -> int:
         """Time of the filter state (the fusion horizon), µs."""
+        self._process_due()
         return self._t_x_us
 
     @property
     def x(self) -> Vec:
         """Copy of the state vector (layout :data:`fusion.state.S`)."""
+        self._process_due()
         return self._kf.x.copy()
 
     @property
     def P(self) -> Mat:
         """Copy of the state covariance."""
+        self._process_due()
         return self._kf.P.copy()
+
+    @property
+    def covariance_predictions(self) -> int:
+        """Number of covariance predictions so far (for the cost figures)."""
+        self._process_due()
+        return self._kf.n_predictions
 
     def covariance(self, *names: str) -> Mat:
         """Covariance block of the named state fields (in that order)."""
+        self._process_due()
         i = S.idx(*names)
         return self._kf.P[np.ix_(i, i)].copy()
 
     def status(self) -> dict[str, AidStatus]:
         """Per aid source (:data:`AID_SOURCES`) the status after its last processed sample."""
+        self._process_due()
         return {name: row.snapshot() for name, row in self._st.items()}
 
     def predict(self, imu: ImuSample, att: AttitudeSample) -> None:
-        """Push one IMU sample (specific force m/s^2, FRD, at ``imu.t_us``; the body rates are checked but not used:
-        attitude comes from the AHRS) with the AHRS attitude (3-2-1 Euler, rad) valid within ``att_max_age_s`` of
-        it.  IMU stamps must increase.  The sample drives the prediction of the interval that ends at its stamp."""
-        reason = self._check_imu(imu, att)
+        """Push one IMU sample (specific force m/s^2 and body rates rad/s, FRD, at ``imu.t_us``) with the AHRS
+        attitude (3-2-1 Euler, rad) valid within ``att_max_age_s`` of it.  IMU stamps must increase.  The sample
+        drives the prediction of the interval that ends at its stamp (its rates only through the AHRS delay)."""
+        # the checks are written out here (not in a helper): this is the per-sample path
+        reason = ""
+        try:
+            t, ta = imu.t_us, att.t_us
+            if not (_is_int(t) and _is_int(ta)):
+                reason = REASON_BAD_TIME
+            else:
+                a, g = imu.accel_b_m_s2, imu.gyro_b_rad_s
+                if not (type(a) is np.ndarray and type(g) is np.ndarray):
+                    a, g = np.asarray(a, dtype=float), np.asarray(g, dtype=float)
+                # unpacking checks the shape: anything but 3 numbers raises (or gives lists, which do not add up)
+                fx, fy, fz = a.tolist()
+                gx, gy, gz = g.tolist()
+                # the sum of finite numbers is finite (an overflow at absurd magnitudes is rejected as well)
+                if not math.isfinite(fx + fy + fz + gx + gy + gz + att.roll_rad + att.pitch_rad + att.yaw_rad):
+                    reason = REASON_NON_FINITE
+        except (AttributeError, TypeError, ValueError, IndexError):
+            reason = REASON_BAD_SHAPE
+        if not reason:
+            t = int(t)
+            newest = self._newest_imu_us
+            if newest is not None and t <= newest:
+                reason = REASON_NOT_INCREASING
+            elif t < self._t_in_us:
+                reason = REASON_LATE
+            elif abs(int(ta) - t) > self._att_age_us:
+                reason = REASON_ATT_STALE
         if reason:
             t = getattr(imu, "t_us", -1)
-            self._st["imu"].set(int(t) if _is_int(t) else -1, rejected=True, reason=reason)
+            self._st_imu.set(int(t) if _is_int(t) else -1, rejected=True, reason=reason)
             return
-        t = int(imu.t_us)
         self._newest_imu_us = t
-        if self._att_out is None or self._att is None:
+        if self._att is None:
             self._att_out = att             # heading for the output until the horizon reaches an IMU sample
-        heapq.heappush(self._heap, (t, _PRIO["imu"], next(self._seq), "imu", (imu, att)))
-        self._process_due()
+            self._est = None
+        q = self._imu_q
+        q.append((t, fx, fy, fz, gx, gy, gz, att))
+        # Due samples are processed in batches (the result is the same as one by one): now if a measurement is
+        # due, or the oldest waiting sample is a prediction period behind the horizon; otherwise when anything
+        # reads the filter (estimate, status, the properties) or a measurement arrives.
+        horizon = t - self._delay_us
+        heap = self._heap
+        if (heap and heap[0][0] <= horizon) or q[0][0] <= horizon - self._period_us:
+            self._process_due()
 
     def fuse_airspeed(self, t_us: int, tas_m_s: float) -> None:
         """Push a true airspeed sample (m/s) measured at ``t_us``; the synthetic zero sideslip is fused with it
@@ -588,8 +845,9 @@ class NavEkf:
         step in order, including each cycle's base step (``new_cycle``) so the clone is taken at the base time."""
         row = self._st["optical"]
         try:
-            ints_ok = all(_is_int(v) for v in (step.t_us, step.base_t_us, step.cycle_id))
-            vals_ok = _finite(step.dx_px, step.dy_px, step.base_yaw_rad, step.focal_px)
+            ints_ok = _is_int(step.t_us) and _is_int(step.base_t_us) and _is_int(step.cycle_id)
+            # a sum is finite only if every term is (NaN and inf propagate); non-numbers raise
+            vals_ok = math.isfinite(step.dx_px + step.dy_px + step.base_yaw_rad + step.focal_px)
             # used by the noise model: must be numbers (NaN allowed: they fall back to conservative values)
             float(step.quality.psr), float(step.rel_rot_rad), bool(step.quality.valid), bool(step.valid)
         except (AttributeError, TypeError, ValueError):
@@ -616,35 +874,20 @@ class NavEkf:
         self._push(step.t_us, "optical", step)
 
     def estimate(self) -> NavEstimate:
-        """The current estimate (at :attr:`t_us`), with one-sigma uncertainties and the validity flag."""
-        return self._estimate()
+        """The current estimate (at :attr:`t_us`), with one-sigma uncertainties and the validity flag.  Computed once
+        per filter state: until the state changes, calls return the same object (its arrays are read-only)."""
+        if self._imu_q:
+            self._process_due()
+        e = self._est
+        if e is None:
+            e = self._est = self._estimate()
+        return e
 
     # ----------------------------------------------------------------------------------------------------------
     # input checks and the buffer
-    def _check_imu(self, imu: ImuSample, att: AttitudeSample) -> str:
-        try:
-            if not (_is_int(imu.t_us) and _is_int(att.t_us)):
-                return REASON_BAD_TIME
-            a, g = imu.accel_b_m_s2, imu.gyro_b_rad_s
-            if not (isinstance(a, np.ndarray) and a.shape == (3,) and isinstance(g, np.ndarray) and g.shape == (3,)):
-                a, g = np.asarray(a, dtype=float), np.asarray(g, dtype=float)
-                if a.shape != (3,) or g.shape != (3,):
-                    return REASON_BAD_SHAPE
-            # the sum of finite numbers is finite (an overflow at absurd magnitudes is rejected as well)
-            total = float(a[0] + a[1] + a[2] + g[0] + g[1] + g[2]) + att.roll_rad + att.pitch_rad + att.yaw_rad
-        except (AttributeError, TypeError, ValueError, IndexError):
-            return REASON_BAD_SHAPE
-        if not math.isfinite(total):
-            return REASON_NON_FINITE
-        if self._newest_imu_us is not None and imu.t_us <= self._newest_imu_us:
-            return REASON_NOT_INCREASING
-        if imu.t_us < self._t_in_us:
-            return REASON_LATE
-        if abs(int(att.t_us) - int(imu.t_us)) > self._att_age_us:
-            return REASON_ATT_STALE
-        return ""
-
     def _admit(self, source: str, t_us: Any, value: Any) -> bool:
+        if self._imu_q:
+            self._process_due()                  # what is due is processed first: "late" means the same as ever
         if not _is_int(t_us):
             self._st[source].set(-1, rejected=True, reason=REASON_BAD_TIME)
             return False
@@ -665,153 +908,337 @@ class NavEkf:
         return True
 
     def _push(self, t_us: int, kind: str, payload: Any) -> None:
-        heapq.heappush(self._heap, (int(t_us), _PRIO[kind], next(self._seq), kind, payload))
+        t = int(t_us)
+        newest = self._newest_imu_us
+        if (not self._heap and not self._imu_q and newest is not None and t <= newest - self._delay_us):
+            self._process(t, kind, payload)        # nothing waits before it: due now (the usual case without delay)
+            return
+        heapq.heappush(self._heap, (t, _PRIO[kind], next(self._seq), kind, payload))
         self._n_meas_buffered += 1
         self._process_due()
 
     def _process_due(self) -> None:
+        """Process, in time order, every buffered input at or before the horizon (the IMU samples up to a
+        measurement's stamp before it)."""
         if self._newest_imu_us is None:
             return
         horizon = self._newest_imu_us - self._delay_us
-        heap = self._heap
-        while heap and heap[0][0] <= horizon:
+        q, heap = self._imu_q, self._heap
+        while True:
+            if q and q[0][0] <= horizon:
+                limit = min(horizon, heap[0][0]) if heap else horizon
+                if q[0][0] <= limit:
+                    self._run_imu(limit)
+                    continue
+            if not heap or heap[0][0] > horizon:
+                return
             t, _, _, kind, payload = heapq.heappop(heap)
-            if kind == "imu":
-                self._do_imu(t, *payload)
-                continue
             self._n_meas_buffered -= 1
-            self._predict_to(t)
-            if kind == "optical":
-                self._do_optical(payload)
-            elif kind == "airspeed":
-                self._do_airspeed(t, payload)
-            elif kind == "baro":
-                self._fuse("baro", t, BaroAltitude(), np.array([payload]), BaroAltitude.noise(self.cfg),
-                           self.cfg.gate_baro_nis)
-            elif kind in ("gnss_pos", "gnss_vel"):
-                self._do_gnss(kind, t, *payload)
-            elif kind == "clone":
-                self._clone(payload)
+            self._process(t, kind, payload)
+
+    def _process(self, t: int, kind: str, payload: Any) -> None:
+        """Predict to the stamp ``t`` of a due measurement (or clone event) and fuse it."""
+        self._predict_to(t)
+        if kind == "optical":
+            self._do_optical(payload)
+        elif kind == "airspeed":
+            self._do_airspeed(t, payload)
+        elif kind == "baro":
+            z_hat, h = BaroAltitude.row(self._kf.x)
+            self._fuse1(self._st["baro"], t, z_hat, h, payload, self._r_baro, self.cfg.gate_baro_nis)
+        elif kind in ("gnss_pos", "gnss_vel"):
+            self._do_gnss(kind, t, *payload)
+        elif kind == "clone":
+            self._clone(payload)
 
     # ----------------------------------------------------------------------------------------------------------
     # prediction
-    def _do_imu(self, t: int, imu: ImuSample, att: AttitudeSample) -> None:
-        if att is self._att and self._R_nb is not None:
-            R = self._R_nb                 # the AHRS is usually slower than the IMU: reuse its rotation
+    def _run_imu(self, t_end: int) -> None:
+        """Process the queued IMU samples stamped at or before ``t_end``, in order.  Each sample covers the interval
+        since the previous one with its own specific force, body rates and attitude: it is added to the open segment
+        (a new attitude closes the segment first, :meth:`_fold`), and the covariance is predicted once
+        ``predict_period_s`` has accumulated.  One loop over local floats: this is the per-sample path."""
+        q = self._imu_q
+        s0, s1, s2, s3, s4, s5, s6, s7, s8, s9, s10, s11, s12, s13 = self._seg
+        opened = self._seg_open
+        t_in, t_x = self._t_in_us, self._t_x_us
+        period_us, gap_us = self._period_us, self._gap_us
+        a0 = self._att
+        row = self._st_imu
+        n_fused = row.n_fused
+        gap = False
+        fx = fy = fz = wx = wy = wz = gx = gy = gz = 0.0
+        t = t_in
+        while q and q[0][0] <= t_end:
+            t, fx, fy, fz, gx, gy, gz, att = q.popleft()
+            if att is not a0:
+                if (a0 is None or att.yaw_rad != a0.yaw_rad or att.roll_rad != a0.roll_rad
+                        or att.pitch_rad != a0.pitch_rad):
+                    if opened:
+                        self._seg = [s0, s1, s2, s3, s4, s5, s6, s7, s8, s9, s10, s11, s12, s13]
+                        self._fold()
+                        s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = s8 = s9 = s10 = s11 = s12 = s13 = 0.0
+                        opened = False
+                    self._Rl = _rot_rows(att.roll_rad, att.pitch_rad, att.yaw_rad)
+                    self._R_nb = None
+                    self._est = None       # the output heading follows the AHRS
+                a0 = att
+            wx, wy, wz = gy * fz - gz * fy, gz * fx - gx * fz, gx * fy - gy * fx     # omega x f (body)
+            dt_us = t - t_in
+            gap = dt_us > gap_us and n_fused > 0
+            n_fused += 1
+            if dt_us > 0:
+                dt = dt_us * S_PER_US
+                mid = (t + t_in - 2 * t_x) * (0.5 * S_PER_US)
+                ax, ay, az = fx * dt, fy * dt, fz * dt
+                s0 += ax
+                s1 += ay
+                s2 += az
+                s3 += ax * mid
+                s4 += ay * mid
+                s5 += az * mid
+                s6 += dt
+                s7 += dt * mid
+                ax, ay, az = wx * dt, wy * dt, wz * dt
+                s8 += ax
+                s9 += ay
+                s10 += az
+                s11 += ax * mid
+                s12 += ay * mid
+                s13 += az * mid
+                opened = True
+                t_in = t
+                if t_in - t_x >= period_us:
+                    self._seg = [s0, s1, s2, s3, s4, s5, s6, s7, s8, s9, s10, s11, s12, s13]
+                    self._seg_open, self._t_in_us = opened, t_in
+                    self._flush()
+                    s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = s8 = s9 = s10 = s11 = s12 = s13 = 0.0
+                    opened = False
+                    t_x = self._t_x_us
+        self._seg = [s0, s1, s2, s3, s4, s5, s6, s7, s8, s9, s10, s11, s12, s13]
+        self._seg_open, self._t_in_us = opened, t_in
+        self._att = a0
+        if n_fused == row.n_fused:
+            return
+        self._f_held = (fx, fy, fz, wx, wy, wz)
+        self._rates_held = (gx, gy, gz)
+        self._est = None                      # the output heading uses the newest body rates
+        if row.fused and not row.reason:      # the record already says "fused": only the stamp and count move
+            row.t_us = row.t_last_fuse_us = t
+            row._snap = None
         else:
-            R = R_nb_321(att.roll_rad, att.pitch_rad, att.yaw_rad)
-        Rf = R @ imu.accel_b_m_s2
-        dt_us = t - self._t_in_us
-        if dt_us > 0:
-            dt = dt_us / US_PER_S
-            acc = self._acc
-            acc.dt_s += dt
-            acc.dv_ahrs_n += Rf * dt
-            acc.int_R_nb += R * dt
-            self._t_in_us = t
-        self._held = (Rf, R)
-        self._att = att
-        self._R_nb = R
-        row = self._st["imu"]
-        row.set(t, fused=True, reason=REASON_IMU_GAP if (dt_us > self._gap_us and row.n_fused > 0) else "")
-        if self._t_in_us - self._t_x_us >= self._period_us:
-            self._flush()
+            row.fused_now(t, (), (), math.nan)
+        row.n_fused = n_fused
+        if gap:
+            row.reason = REASON_IMU_GAP
+
+    def _fold(self) -> None:
+        """Rotate the open segment's sums by its attitude into the prediction's increment."""
+        f0, f1, f2, n0, n1, n2, sdt, sdm, k0, k1, k2, j0, j1, j2 = self._seg
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = self._Rl   # type: ignore[misc]
+        a = self._acc
+        a[0] += r00 * f0 + r01 * f1 + r02 * f2
+        a[1] += r10 * f0 + r11 * f1 + r12 * f2
+        a[2] += r20 * f0 + r21 * f1 + r22 * f2
+        a[3] += r00 * n0 + r01 * n1 + r02 * n2
+        a[4] += r10 * n0 + r11 * n1 + r12 * n2
+        a[5] += r20 * n0 + r21 * n1 + r22 * n2
+        a[6] += r00 * sdt
+        a[7] += r01 * sdt
+        a[8] += r02 * sdt
+        a[9] += r10 * sdt
+        a[10] += r11 * sdt
+        a[11] += r12 * sdt
+        a[12] += r20 * sdt
+        a[13] += r21 * sdt
+        a[14] += r22 * sdt
+        a[15] += r00 * sdm
+        a[16] += r01 * sdm
+        a[17] += r02 * sdm
+        a[18] += r10 * sdm
+        a[19] += r11 * sdm
+        a[20] += r12 * sdm
+        a[21] += r20 * sdm
+        a[22] += r21 * sdm
+        a[23] += r22 * sdm
+        a[24] += r00 * k0 + r01 * k1 + r02 * k2
+        a[25] += r10 * k0 + r11 * k1 + r12 * k2
+        a[26] += r20 * k0 + r21 * k1 + r22 * k2
+        a[27] += r00 * j0 + r01 * j1 + r02 * j2
+        a[28] += r10 * j0 + r11 * j1 + r12 * j2
+        a[29] += r20 * j0 + r21 * j1 + r22 * j2
+        self._seg = [0.0] * _SEG_LEN
+        self._seg_open = False
 
     def _flush(self) -> None:
-        if self._acc.dt_s > 0.0:
-            self._kf.predict(u=self._acc)
-            self._acc = ImuIncrement()
-        self._t_x_us = self._t_in_us
+        """Predict the state and covariance over everything consumed: the filter time becomes ``_t_in_us``."""
+        if self._seg_open:
+            self._fold()
+        T_us = self._t_in_us - self._t_x_us
+        if T_us > 0:
+            a = self._acc
+            self._kf.predict(u=ImuIncrement(T_us * S_PER_US, a[0:3], [a[6:9], a[9:12], a[12:15]], a[3:6],
+                                            [a[15:18], a[18:21], a[21:24]], a[24:27], a[27:30]))
+            self._acc = [0.0] * _ACC_LEN
+            self._est = None
+            self._t_x_us = self._t_in_us
 
     def _predict_to(self, t: int) -> None:
-        """Bring the state to ``t`` (>= the inputs consumed): flush the accumulated IMU samples, then predict with
-        the last sample held (zero-order hold) up to ``t``; before the first IMU sample the velocity is held."""
+        """Bring the state to ``t`` (>= the inputs consumed) in one prediction: the consumed samples plus the last
+        sample held (zero-order hold) from its stamp to ``t``; before the first IMU sample the velocity is held."""
+        t_in = self._t_in_us
+        dt_us = t - t_in
+        if dt_us > 0:
+            dt = dt_us * S_PER_US
+            mid = (t + t_in - 2 * self._t_x_us) * (0.5 * S_PER_US)
+            if self._f_held is not None:
+                seg = self._seg
+                for k, v in enumerate(self._f_held):          # f (0-2) and omega x f (3-5) of the held sample
+                    o = k if k < 3 else k + 5                    # their sums' places in the segment
+                    seg[o] += v * dt
+                    seg[o + 3] += v * dt * mid
+                seg[6] += dt
+                seg[7] += dt * mid
+                self._seg_open = True
+            else:                          # no IMU yet: a specific force of exactly -g (velocity held)
+                g_dt = -STANDARD_GRAVITY_M_S2 * dt
+                self._acc[2] += g_dt
+                self._acc[5] += g_dt * mid
+            self._t_in_us = t
         self._flush()
-        if t <= self._t_x_us:
-            return
-        dt = (t - self._t_x_us) / US_PER_S
-        if self._held is not None:
-            Rf, R = self._held
-            inc = ImuIncrement(dt, Rf * dt, R * dt)
-        else:
-            inc = ImuIncrement(dt, np.array([0.0, 0.0, -STANDARD_GRAVITY_M_S2 * dt]), np.zeros((3, 3)))
-        self._kf.predict(u=inc)
-        self._t_x_us = self._t_in_us = t
 
     # ----------------------------------------------------------------------------------------------------------
-    # updates
-    def _fuse(self, source: str, t_us: int, model: MeasurementModel, z: Vec, R: Mat, gate_nis: float) -> bool:
-        """One gated EKF update (Joseph form, solve, symmetric P); returns whether it was fused."""
+    # updates (Joseph form as a symmetric rank-m update, see the module docstring)
+    def _fuse1(self, row: _StatusRow, t_us: int, z_hat: float, h: Vec, z: float, r: float, gate_nis: float) -> bool:
+        """Gated scalar update with Jacobian row ``h`` and variance ``r``; returns whether it was fused."""
         kf = self._kf
-        row = self._st[source]
         x, P = kf.x, kf.P
-        z_hat, H = model.linearise(x)
         y = z - z_hat
-        if y.shape[0] == 1:
-            return self._fuse_scalar(row, t_us, x, P, H[0], y, R, gate_nis)
-        PHt = P @ H.T
-        HPHt = H @ PHt
-        Sm = HPHt + R
-        s_diag = Sm.diagonal().copy()
-        if not (np.isfinite(y).all() and np.isfinite(Sm).all()):
-            row.set(t_us, rejected=True, reason=REASON_NUMERIC)
-            return False
-        if (HPHt.diagonal() < -COV_RESET_REL_TOL * R.diagonal()).any():
-            self._cov_reset(row, t_us, H, y, s_diag)
-            return False
-        X = np.linalg.solve(Sm, np.column_stack([y, PHt.T]))      # one solve for the NIS and the gain: S^-1 [y, H P]
-        nis = float(y @ X[:, 0])
-        K = X[:, 1:].T
-        K *= self._gain_scale[:, None]
-        ratio = nis / gate_nis
-        if not ratio <= 1.0:
-            row.set(t_us, rejected=True, reason=REASON_GATE, innovation=y, innovation_var=s_diag, test_ratio=ratio)
-            return False
-        I_KH = _EYE - K @ H
-        return self._commit(row, t_us, x + K @ y, I_KH @ P @ I_KH.T + K @ R @ K.T, y, s_diag, ratio)
-
-    def _fuse_scalar(self, row: _StatusRow, t_us: int, x: Vec, P: Mat, h: Vec, y: Vec, R: Mat,
-                     gate_nis: float) -> bool:
-        """Scalar update: the same Joseph form ``(I - K h) P (I - K h)' + K r K'`` evaluated with rank-one products
-        (``(I - K h) P = P - K (P h)'`` since P is symmetric) instead of two n x n matrix products."""
-        r = float(R[0, 0])
-        Ph = P @ h
-        hph = float(h @ Ph)
+        Ph = P.dot(h)
+        hph = float(Ph.dot(h))
         s = hph + r
-        y0 = float(y[0])
-        var = np.array([s])
-        if not (math.isfinite(y0) and math.isfinite(s)):
+        if not (math.isfinite(y) and math.isfinite(s)):
             row.set(t_us, rejected=True, reason=REASON_NUMERIC)
             return False
         if hph < -COV_RESET_REL_TOL * r:
-            self._cov_reset(row, t_us, h[None, :], y, var)
+            self._cov_reset(row, t_us, np.flatnonzero(h), (y,), (s,))
             return False
-        ratio = y0 * y0 / s / gate_nis
+        ratio = y * y / s / gate_nis
         if not ratio <= 1.0:
-            row.set(t_us, rejected=True, reason=REASON_GATE, innovation=y, innovation_var=var, test_ratio=ratio)
+            row.set(t_us, rejected=True, reason=REASON_GATE, innovation=(y,), innovation_var=(s,), test_ratio=ratio)
             return False
-        K = Ph / s * self._gain_scale
-        A = P - K[:, None] * Ph[None, :]                   # (I - K h) P
-        P_new = A - (A @ h)[:, None] * K[None, :] + r * (K[:, None] * K[None, :])
-        return self._commit(row, t_us, x + K * y0, P_new, y, var, ratio)
+        u = (Ph * (1.0 / math.sqrt(s))).reshape(-1, 1)    # u u' = P h' s^-1 h P
+        A = u.dot(u.T)
+        P_new = P - A
+        dx = Ph * (y / s)                             # the optimal-gain correction K_opt y
+        if self._schmidt:
+            dx *= self._gain_scale
+            for i, j, cc in self._schmidt:         # partial-update states: P_ij += (1-g_i)(1-g_j) A_ij
+                P_new[i, j] += cc * A[i, j]
+        return self._commit(row, t_us, x + dx, P_new, float(Ph.dot(Ph)), (y,), (s,), ratio)
 
-    def _commit(self, row: _StatusRow, t_us: int, x_new: Vec, P_new: Mat, y: Vec, var: Vec, ratio: float) -> bool:
-        """Symmetrise and store the corrected state, unless anything is non-finite (then the prior is kept)."""
-        P_new = 0.5 * (P_new + P_new.T)
-        if not (np.isfinite(x_new).all() and np.isfinite(P_new).all()):
-            row.set(t_us, rejected=True, reason=REASON_NUMERIC, innovation=y, innovation_var=var, test_ratio=ratio)
+    def _fuse2(self, row: _StatusRow, t_us: int, z_hat: Vec, H: Mat, z: tuple[float, float], r: float,
+               gate_nis: float) -> bool:
+        """Gated 2-D update with Jacobian ``H`` (2 x n) and covariance ``r I``: ``S = C C'`` factorised in closed
+        form, ``L = P H' C^-T`` so that ``P H' S^-1 H P = L L'`` and ``K y = L C^-1 y``."""
+        kf = self._kf
+        x, P = kf.x, kf.P
+        zh0, zh1 = z_hat.tolist()
+        y0, y1 = z[0] - zh0, z[1] - zh1
+        PHt = P.dot(H.T)
+        (a, b), (c, d) = H.dot(PHt).tolist()
+        s00, s11, s01 = a + r, d + r, 0.5 * (b + c)
+        innov, var = (y0, y1), (s00, s11)
+        if not math.isfinite(y0 + y1 + s00 + s11 + s01):
+            row.set(t_us, rejected=True, reason=REASON_NUMERIC)
+            return False
+        if a < -COV_RESET_REL_TOL * r or d < -COV_RESET_REL_TOL * r:
+            self._cov_reset(row, t_us, np.flatnonzero(np.any(H != 0.0, axis=0)), innov, var)
+            return False
+        if not (s00 > 0.0 and s00 * s11 - s01 * s01 > 0.0):
+            row.set(t_us, rejected=True, reason=REASON_NUMERIC, innovation=innov, innovation_var=var)
+            return False
+        c00 = math.sqrt(s00)                          # Cholesky factor C = [[c00, 0], [c10, c11]]
+        c10 = s01 / c00
+        c11 = math.sqrt(s11 - c10 * c10)
+        i00, i10, i11 = 1.0 / c00, -c10 / (c00 * c11), 1.0 / c11     # C^-1 = [[i00, 0], [i10, i11]]
+        w0, w1 = i00 * y0, i10 * y0 + i11 * y1        # C^-1 y (whitened innovation)
+        ratio = (w0 * w0 + w1 * w1) / gate_nis
+        if not ratio <= 1.0:
+            row.set(t_us, rejected=True, reason=REASON_GATE, innovation=innov, innovation_var=var, test_ratio=ratio)
+            return False
+        L = PHt.dot(np.array(((i00, i10), (0.0, i11))))   # P H' C^-T
+        A = L.dot(L.T)
+        P_new = P - A
+        dx = L.dot(np.array((w0, w1)))                # K_opt y
+        if self._schmidt:
+            dx *= self._gain_scale
+            for i, j, cc in self._schmidt:         # partial-update states: P_ij += (1-g_i)(1-g_j) A_ij
+                P_new[i, j] += cc * A[i, j]
+        return self._commit(row, t_us, x + dx, P_new, float(A.trace()), innov, var, ratio)
+
+    def _fuse_sel(self, row: _StatusRow, t_us: int, idx: list[int], z: Vec, r: list[float], gate_nis: float) -> bool:
+        """Gated update of a direct measurement of the states ``idx`` (``H`` = those rows of the identity, so
+        ``P H'`` is a column selection) with diagonal covariance ``r``: ``S = C C'`` factorised in floats,
+        ``L = P H' C^-T``, as :meth:`_fuse2`."""
+        kf = self._kf
+        x, P = kf.x, kf.P
+        m = len(idx)
+        y = (z - x[idx]).tolist()
+        PHt = P[:, idx]
+        hph = PHt[idx].tolist()
+        Sm = [[0.5 * (hph[i][j] + hph[j][i]) + (r[i] if i == j else 0.0) for j in range(m)] for i in range(m)]
+        innov, var = tuple(y), tuple(Sm[i][i] for i in range(m))
+        if not math.isfinite(sum(y) + sum(map(sum, Sm))):
+            row.set(t_us, rejected=True, reason=REASON_NUMERIC)
+            return False
+        if any(hph[i][i] < -COV_RESET_REL_TOL * r[i] for i in range(m)):
+            self._cov_reset(row, t_us, np.array(idx), innov, var)
+            return False
+        Ci = _chol_inv(Sm)
+        if Ci is None:
+            row.set(t_us, rejected=True, reason=REASON_NUMERIC, innovation=innov, innovation_var=var)
+            return False
+        w = [sum(Ci[i][k] * y[k] for k in range(i + 1)) for i in range(m)]     # C^-1 y
+        ratio = sum(v * v for v in w) / gate_nis
+        if not ratio <= 1.0:
+            row.set(t_us, rejected=True, reason=REASON_GATE, innovation=innov, innovation_var=var, test_ratio=ratio)
+            return False
+        L = PHt.dot(np.array(Ci).T)                  # P H' C^-T
+        A = L.dot(L.T)
+        P_new = P - A
+        dx = L.dot(np.array(w))
+        if self._schmidt:
+            dx *= self._gain_scale
+            for i, j, cc in self._schmidt:         # partial-update states: P_ij += (1-g_i)(1-g_j) A_ij
+                P_new[i, j] += cc * A[i, j]
+        return self._commit(row, t_us, x + dx, P_new, float(A.trace()), innov, var, ratio)
+
+    def _commit(self, row: _StatusRow, t_us: int, x_new: Vec, P_new: Mat, check: float, innov: tuple[float, ...],
+                var: tuple[float, ...], ratio: float) -> bool:
+        """Store the corrected state unless ``check`` (a sum of squares or products of every element of the update's
+        factors, e.g. ``u @ u``) is non-finite; then the prior is kept.  A NaN or inf in a factor makes that sum
+        non-finite, and with finite factors the update is finite: ``P`` is finite, and the NIS gate bounds
+        ``|K y|`` by ``sqrt(gate * P_ii)`` and the subtracted term by ``|P_ij|``-sized values."""
+        if not math.isfinite(check):
+            row.set(t_us, rejected=True, reason=REASON_NUMERIC, innovation=innov, innovation_var=var,
+                    test_ratio=ratio)
             return False
         self._kf.x, self._kf.P = x_new, P_new
-        self._kf.y = y
-        row.set(t_us, fused=True, innovation=y, innovation_var=var, test_ratio=ratio)
+        self._est = None
+        row.fused_now(t_us, innov, var, ratio)
         return True
 
-    def _cov_reset(self, row: _StatusRow, t_us: int, H: Mat, y: Vec, var: Vec) -> None:
-        cols = np.flatnonzero(np.any(H != 0.0, axis=0))
+    def _store(self, x: Vec, P: Mat) -> None:
+        self._kf.x, self._kf.P = x, P
+        self._est = None
+
+    def _cov_reset(self, row: _StatusRow, t_us: int, cols: NDArray[np.intp], innov: tuple[float, ...],
+                   var: tuple[float, ...]) -> None:
         self._reset_covariance(cols)
         log.warning("EKF %s at %d us: innovation variance below observation variance, covariance of states %s reset",
                     row.source, t_us, cols.tolist())
-        row.set(t_us, rejected=True, reason=REASON_COV_RESET, innovation=y, innovation_var=var)
+        row.set(t_us, rejected=True, reason=REASON_COV_RESET, innovation=innov, innovation_var=var)
 
     def _initial_variances(self) -> Vec:
         c = self.cfg
@@ -827,6 +1254,7 @@ class NavEkf:
         var[S.baro_bias] = c.init_baro_bias_sigma_m**2
         var[S.terrain_h] = c.init_terrain_sigma_m**2
         var[S.tas_scale] = c.init_tas_scale_sigma**2
+        var[S.att_delay] = c.init_att_delay_sigma_s**2
         var[S.base_pos_ne] = c.init_pos_ne_sigma_m**2
         var[S.base_pos_d] = c.init_pos_d_sigma_m**2
         return var
@@ -836,7 +1264,7 @@ class NavEkf:
         P[idx, :] = 0.0
         P[:, idx] = 0.0
         P[idx, idx] = self._init_var[idx]
-        self._kf.P = P
+        self._store(self._kf.x, P)
         if np.intersect1d(idx, np.concatenate([_I_POS, _I_CLONE])).size:
             self._clone_cycle = None
 
@@ -847,7 +1275,7 @@ class NavEkf:
         P[idx, :] = 0.0
         P[:, idx] = 0.0
         P[np.ix_(idx, idx)] = R
-        self._kf.x, self._kf.P = x, P
+        self._store(x, P)
         if np.intersect1d(idx, _I_POS).size:   # the position jumped: the current cycle's clone no longer applies
             self._clone_cycle = None
 
@@ -861,13 +1289,19 @@ class NavEkf:
             self._reset_wind(tas)
             self._st["airspeed"].set(t, reason=REASON_WIND_RESET)
             return
-        self._fuse("airspeed", t, TrueAirspeed(), np.array([tas]), TrueAirspeed.noise(c), c.gate_airspeed_nis)
+        z_hat, h = TrueAirspeed.row(self._kf.x)
+        self._fuse1(self._st["airspeed"], t, z_hat, h, tas, self._r_tas, c.gate_airspeed_nis)
         if c.sideslip_fusion:
-            if self._R_nb is None:
+            if self._Rl is None:
                 self._st["sideslip"].set(t, reason=REASON_NO_ATTITUDE)
             else:
-                self._fuse("sideslip", t, SyntheticSideslip(self._R_nb), np.zeros(1), SyntheticSideslip.noise(c),
-                           c.gate_sideslip_nis)
+                if self._R_nb is None:
+                    self._R_nb = np.array(self._Rl).reshape(3, 3)
+                model = self._beta_model
+                if model is None or model.R_nb_ahrs is not self._R_nb:    # one model per AHRS attitude
+                    model = self._beta_model = SyntheticSideslip(self._R_nb)
+                z_hat, h = model.row(self._kf.x)
+                self._fuse1(self._st["sideslip"], t, z_hat, h, 0.0, self._r_beta, c.gate_sideslip_nis)
 
     def _reset_wind(self, tas: float) -> None:
         """Wind from the wind triangle (:meth:`TrueAirspeed.wind_from_airspeed`) with its covariance
@@ -884,35 +1318,37 @@ class NavEkf:
         P_new[:, iw] = A.T
         P_new[np.ix_(iw, iw)] = (A @ J.T + self.cfg.tas_sigma_m_s**2 * np.outer(d_tas, d_tas)
                                  + self.cfg.sideslip_sigma_rad**2 * np.outer(d_beta, d_beta))
-        self._kf.x, self._kf.P = x_new, 0.5 * (P_new + P_new.T)
+        self._store(x_new, 0.5 * (P_new + P_new.T))
         self._wind_reset_pending = False
 
     def _do_gnss(self, source: str, t: int, z: Vec, sigmas: tuple[float | None, float | None]) -> None:
         c = self.cfg
         if source == "gnss_pos":
             model: GnssPosition | GnssVelocity = GnssPosition(dim=z.shape[0])
-            gate, idx = c.gate_gnss_pos_nis, _I_POS[: z.shape[0]]
-            R = model.noise(c, *sigmas)
+            gate = c.gate_gnss_pos_nis
+            r = model.variances(c, *sigmas)
             # correlated receiver error: fixes closer than the correlation time share their error
             if self._gnss_pos_last_us is not None and c.gnss_pos_corr_time_s > 0.0:
                 dt = max(t - self._gnss_pos_last_us, 1) / US_PER_S
-                R = R * max(1.0, 2.0 * c.gnss_pos_corr_time_s / dt)
+                k = max(1.0, 2.0 * c.gnss_pos_corr_time_s / dt)
+                r = [v * k for v in r]
             self._gnss_pos_last_us = t
         else:
             model = GnssVelocity(dim=z.shape[0])
-            gate, idx = c.gate_gnss_vel_nis, _I_VEL[: z.shape[0]]
-            R = model.noise(c, *sigmas)
-        if self._fuse(source, t, model, z, R, gate):
+            gate = c.gate_gnss_vel_nis
+            r = model.variances(c, *sigmas)
+        row = self._st[source]
+        idx = model.state_idx
+        if self._fuse_sel(row, t, idx, z, r, gate):
             self._reject_since[source] = None
             return
-        row = self._st[source]
         if row.reason != REASON_GATE:
             return
         since = self._reject_since[source]
         if since is None:
             self._reject_since[source] = t
         elif t - since >= c.gnss_reset_after_s * US_PER_S:
-            self._reset_states(idx, z, R)
+            self._reset_states(np.array(idx), z, np.diag(r))
             self._reject_since[source] = None
             log.warning("EKF: %s rejected for %.1f s, state reset to GNSS at %d us", source, (t - since) / US_PER_S, t)
             row.n_rejected -= 1                  # this sample was used after all
@@ -925,7 +1361,7 @@ class NavEkf:
         x[_I_CLONE] = x[_I_POS]
         P[_I_CLONE, :] = P[_I_POS, :]
         P[:, _I_CLONE] = P[:, _I_POS]
-        self._kf.x, self._kf.P = x, P
+        self._store(x, P)
         self._clone_cycle = cycle_id
 
     def _clone_from_step(self, model: OpticalDisplacement, step: GsoeStep, R: Mat) -> None:
@@ -941,7 +1377,7 @@ class NavEkf:
         P_new[_I_CLONE, :] = A
         P_new[:, _I_CLONE] = A.T
         P_new[np.ix_(_I_CLONE, _I_CLONE)] = A @ J.T + Kz @ R @ Kz.T
-        self._kf.x, self._kf.P = x_new, 0.5 * (P_new + P_new.T)
+        self._store(x_new, 0.5 * (P_new + P_new.T))
         self._clone_cycle = int(step.cycle_id)
 
     def _do_optical(self, step: GsoeStep) -> None:
@@ -955,29 +1391,33 @@ class NavEkf:
             row.set(t, rejected=True, reason=REASON_INVALID_MATCH)
             return
         model = OpticalDisplacement(focal_px=float(step.focal_px), base_yaw_rad=float(step.base_yaw_rad))
-        if model.height_base_m(self._kf.x) < c.optical_min_height_m:
+        x = self._kf.x
+        if model.height_base_m(x) < c.optical_min_height_m:
             row.set(t, rejected=True, reason=REASON_LOW_HEIGHT)
             return
-        R = OpticalDisplacement.noise(step, c)
+        r = OpticalDisplacement.noise_var_px2(step, c)
         if self._clone_cycle != step.cycle_id:
             if self._clone_cycle is not None and step.cycle_id < self._clone_cycle:
                 row.set(t, rejected=True, reason=REASON_STALE_CYCLE)
                 return
-            self._clone_from_step(model, step, R)
+            self._clone_from_step(model, step, np.eye(2) * r)
             row.set(t, reason=REASON_ANCHORED)
             return
-        self._fuse("optical", t, model, np.array([step.dx_px, step.dy_px]), R, c.gate_optical_nis)
+        z_hat, H = model.linearise(x)
+        self._fuse2(row, t, z_hat, H, (float(step.dx_px), float(step.dy_px)), r, c.gate_optical_nis)
 
     # ----------------------------------------------------------------------------------------------------------
     # output
     def _estimate(self) -> NavEstimate:
         x, P = self._kf.x, self._kf.P
-        sd = np.sqrt(np.maximum(P.diagonal(), 0.0))
-        v = x[S.vel_ned].copy()
-        vn, ve = float(v[0]), float(v[1])
+        xl = x.tolist()
+        xr = _read_only(x.copy())                  # the output's vectors are read-only views of this copy
+        sd = _read_only(np.sqrt(np.maximum(P.diagonal(), 0.0)))
+        # the covariance entries the derived outputs need, in one gather (see _EST_FLAT)
+        (pnn, pne, pee, pyy, pny, pey, qnn, qne, qee, pdd, ptt, pdt, pdd_t, pyd, pnd, ped) = P.take(_EST_FLAT).tolist()
+        iv, iw = S.vel_ne.start, S.wind_ne.start
+        vn, ve = xl[iv], xl[iv + 1]
         gs = math.hypot(vn, ve)
-        iv, iw, yb_i = S.vel_ne.start, S.wind_ne.start, _I_YAW
-        pnn, pne, pee = P[iv, iv], P[iv, iv + 1], P[iv + 1, iv + 1]
         # course = atan2(ve, vn); gradient w.r.t. (vn, ve) = (-ve, vn) / gs^2
         course = float(wrap_2pi(math.atan2(ve, vn)))
         if gs > 0.0:
@@ -989,20 +1429,24 @@ class NavEkf:
             gn = ge = 0.0
             var_c, gs_sd = math.inf, math.sqrt(max((pnn + pee) / 2.0, 0.0))
         course_sd = min(math.pi, math.sqrt(max(var_c, 0.0)))
-        # heading = yaw_ahrs - yaw_bias; drift = course - heading = course - yaw_ahrs + yaw_bias
-        yb = float(x[yb_i])
+        # heading = yaw_ahrs - yaw_bias + yaw_rate * att_delay (the AHRS heading lags the turn by the delay);
+        # drift = course - heading
+        yb, tau = xl[_I_YAW], xl[_I_DELAY]
         att = self._att if self._att is not None else self._att_out
         if att is not None:
-            heading = float(wrap_2pi(att.yaw_rad - yb))
+            rate = _yaw_rate(att, self._rates_held)
+            heading = float(wrap_2pi(att.yaw_rad - yb + rate * tau))
             drift = float(angle_diff(course, heading))
-            var_d = var_c + P[yb_i, yb_i] + 2.0 * (gn * P[iv, yb_i] + ge * P[iv + 1, yb_i])
+            var_h = pyy - 2.0 * rate * pyd + rate * rate * pdd_t
+            # d drift / d (vel_n, vel_e, yaw_bias, att_delay) = (gn, ge, 1, -rate)
+            var_d = var_c + var_h + 2.0 * (gn * pny + ge * pey) - 2.0 * rate * (gn * pnd + ge * ped)
             drift_sd = min(math.pi, math.sqrt(max(var_d, 0.0))) if gs > 0.0 else math.pi
+            heading_sd = math.sqrt(max(var_h, 0.0))
         else:
             heading = drift = math.nan
-            drift_sd = math.pi
+            drift_sd = heading_sd = math.pi
         # wind speed and the direction it blows from: atan2(-we, -wn); gradient (-we, wn) / ws^2
-        wn, we = float(x[iw]), float(x[iw + 1])
-        qnn, qne, qee = P[iw, iw], P[iw, iw + 1], P[iw + 1, iw + 1]
+        wn, we = xl[iw], xl[iw + 1]
         ws = math.hypot(wn, we)
         w_from = float(wrap_2pi(math.atan2(-we, -wn)))
         if ws > 0.0:
@@ -1013,33 +1457,34 @@ class NavEkf:
             wd_sd, ws_sd = math.pi, math.sqrt(max((qnn + qee) / 2.0, 0.0))
         # height above ground: -pos_d - terrain_h
         ipd, ith = S.pos_d.start, S.terrain_h.start
-        h_agl_sd = math.sqrt(max(P[ipd, ipd] + P[ith, ith] + 2.0 * P[ipd, ith], 0.0))
-        valid, why = self._validity(sd, gs, drift_sd)
+        h_agl_sd = math.sqrt(max(pdd + ptt + 2.0 * pdt, 0.0))
+        vel_sd_max = math.sqrt(max(pnn, pee, 0.0))
+        valid, why = self._validity(vel_sd_max, gs, drift_sd)
         return NavEstimate(
             t_us=self._t_x_us,
-            pos_ne_m=x[S.pos_ne].copy(), pos_ne_sigma_m=sd[S.pos_ne],
-            height_m=float(-x[ipd]), height_sigma_m=float(sd[ipd]),
-            height_agl_m=float(-x[ipd] - x[ith]), height_agl_sigma_m=h_agl_sd,
-            vel_ned_m_s=v, vel_ned_sigma_m_s=sd[S.vel_ned],
+            pos_ne_m=xr[S.pos_ne], pos_ne_sigma_m=sd[S.pos_ne],
+            height_m=-xl[ipd], height_sigma_m=math.sqrt(max(pdd, 0.0)),
+            height_agl_m=-xl[ipd] - xl[ith], height_agl_sigma_m=h_agl_sd,
+            vel_ned_m_s=xr[S.vel_ned], vel_ned_sigma_m_s=sd[S.vel_ned],
             ground_speed_m_s=gs, ground_speed_sigma_m_s=gs_sd,
             course_rad=course, course_sigma_rad=course_sd,
-            wind_ne_m_s=x[S.wind_ne].copy(), wind_ne_sigma_m_s=sd[S.wind_ne],
+            wind_ne_m_s=xr[S.wind_ne], wind_ne_sigma_m_s=sd[S.wind_ne],
             wind_speed_m_s=ws, wind_speed_sigma_m_s=ws_sd, wind_from_rad=w_from, wind_from_sigma_rad=wd_sd,
-            heading_rad=heading, heading_sigma_rad=float(sd[yb_i]),
+            heading_rad=heading, heading_sigma_rad=heading_sd,
             drift_rad=drift, drift_sigma_rad=drift_sd,
             ata_rad=course, ata_sigma_rad=course_sd,
-            accel_bias_b_m_s2=x[S.accel_bias_b].copy(), yaw_bias_rad=yb, opt_rot_rad=float(x[S.opt_rot.start]),
-            baro_bias_m=float(x[S.baro_bias.start]),
-            terrain_h_m=float(x[ith]), tas_scale=float(x[S.tas_scale.start]),
-            cov_pvw=P[np.ix_(_I_PVW, _I_PVW)],
+            accel_bias_b_m_s2=xr[S.accel_bias_b], yaw_bias_rad=yb, opt_rot_rad=xl[S.opt_rot.start],
+            baro_bias_m=xl[S.baro_bias.start],
+            terrain_h_m=xl[ith], tas_scale=xl[S.tas_scale.start],
+            cov_pvw=_read_only(P[_IX_PVW]),
             valid=valid, invalid_reason=why,
         )
 
-    def _validity(self, sd: Vec, gs: float, drift_sd: float) -> tuple[bool, str]:
+    def _validity(self, vel_sd_max: float, gs: float, drift_sd: float) -> tuple[bool, str]:
         c = self.cfg
         if self._att is None:
             return False, REASON_NO_ATTITUDE
-        if float(np.max(sd[S.vel_ne])) > c.valid_vel_sigma_max_m_s:
+        if vel_sd_max > c.valid_vel_sigma_max_m_s:
             return False, "velocity sigma above valid_vel_sigma_max_m_s"
         if gs < c.valid_min_ground_speed_m_s:
             return False, "ground speed below valid_min_ground_speed_m_s"

@@ -2,7 +2,9 @@
 
 Every model has ``predict(x) -> z_hat`` (shape ``(m,)``), ``jacobian(x) -> H`` (analytic, shape ``(m, n)``),
 ``linearise(x) -> (z_hat, H)`` (both at once, sharing the work; what the EKF calls) and ``noise(...) -> R`` (shape
-``(m, m)``).  ``x`` is the state vector laid out by :data:`fusion.state.S`; frames and
+``(m, m)``).  The scalar models also have ``row(x) -> (z_hat, h)`` (a float and the ``(n,)`` Jacobian row), the
+EKF's per-sample path: the state is read once as Python floats (``x.tolist()``), since arithmetic on NumPy scalars
+costs several times more.  ``x`` is the state vector laid out by :data:`fusion.state.S`; frames and
 units as in :mod:`gsoe` (NED, FRD, SI, radians).  Per-measurement context (the camera's focal length, the AHRS
 attitude, which axes a GNSS fix has) is given when the model is built, so a model is a pure function of the state.
 The tests check every ``jacobian`` against finite differences of ``predict``.
@@ -49,6 +51,8 @@ _VN, _VE, _VD = S.vel_ne.start, S.vel_ne.start + 1, S.vel_d.start
 _WN, _WE = S.wind_ne.start, S.wind_ne.start + 1
 _PD, _YB, _BB, _TH, _TS = S.pos_d.start, S.yaw_bias.start, S.baro_bias.start, S.terrain_h.start, S.tas_scale.start
 _OR = S.opt_rot.start
+# the same indices in the second row of a flattened 2 x n Jacobian
+_N2, _E2, _BN2, _BE2, _BD2, _TH2, _YB2, _OR2 = (S.dim + i for i in (_N, _E, _BN, _BE, _BD, _TH, _YB, _OR))
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -74,12 +78,13 @@ class OpticalDisplacement:
     base_yaw_rad: float
 
     def _parts(self, x: Vec) -> tuple[float, float, float, float, float, float]:
-        psi = self.base_yaw_rad - x[_YB] + x[_OR]
+        xl = x.tolist()
+        psi = self.base_yaw_rad - xl[_YB] + xl[_OR]
         c, s = math.cos(psi), math.sin(psi)
-        dn, de = x[_N] - x[_BN], x[_E] - x[_BE]
+        dn, de = xl[_N] - xl[_BN], xl[_E] - xl[_BE]
         along = c * dn + s * de
         cross = -s * dn + c * de
-        h = -x[_BD] - x[_TH]
+        h = -xl[_BD] - xl[_TH]
         return c, s, along, cross, h, self.focal_px / h
 
     def height_base_m(self, x: Vec) -> float:
@@ -95,15 +100,16 @@ class OpticalDisplacement:
 
     def linearise(self, x: Vec) -> tuple[Vec, Mat]:
         c, s, along, cross, h, k = self._parts(x)
-        H = np.zeros((2, S.dim))
-        H[0, _N], H[0, _E], H[1, _N], H[1, _E] = -k * s, k * c, k * c, k * s
-        H[0, _BN], H[0, _BE], H[1, _BN], H[1, _BE] = k * s, -k * c, -k * c, -k * s
         zx_h, zy_h = k * cross / h, k * along / h        # d z / d h_base = -z / h, and d h_base / d(.) = -1
-        H[0, _BD] = H[0, _TH] = zx_h
-        H[1, _BD] = H[1, _TH] = zy_h
-        H[0, _YB], H[1, _YB] = k * along, -k * cross     # d psi / d yaw_bias = -1
-        H[0, _OR], H[1, _OR] = -k * along, k * cross     # d psi / d opt_rot = +1
-        return np.array([k * cross, k * along]), H
+        ks, kc = k * s, k * c
+        H = np.zeros(2 * S.dim)                           # row-major 2 x n, filled element by element (cheapest)
+        H[_N], H[_E], H[_BN], H[_BE] = -ks, kc, ks, -kc                       # row 0 (dx_px)
+        H[_BD] = H[_TH] = zx_h
+        H[_YB], H[_OR] = k * along, -k * along                                # d psi / d yaw_bias = -1, opt_rot = +1
+        H[_N2], H[_E2], H[_BN2], H[_BE2] = kc, ks, -kc, -ks                   # row 1 (dy_px)
+        H[_BD2] = H[_TH2] = zy_h
+        H[_YB2], H[_OR2] = -k * cross, k * cross
+        return np.array([k * cross, k * along]), H.reshape(2, S.dim)
 
     def base_from_step(self, x: Vec, z_px: Vec) -> tuple[Vec, Mat, Mat]:
         """The inverse model, for a cycle whose base time was missed: the base position ``[N, E, D]`` implied by the
@@ -146,10 +152,15 @@ class OpticalDisplacement:
         return cfg.optical_match_sigma_px / q, step.focal_px * att_rad
 
     @staticmethod
+    def noise_var_px2(step: GsoeStep, cfg: EkfConfig) -> float:
+        """Variance (px^2) of each of ``dx_px``, ``dy_px`` (uncorrelated): matcher plus attitude-induced error."""
+        m, a = OpticalDisplacement.noise_sigma_px(step, cfg)
+        return m * m + a * a
+
+    @staticmethod
     def noise(step: GsoeStep, cfg: EkfConfig) -> Mat:
         """2x2 covariance (px^2) of ``[dx_px, dy_px]``: matcher and attitude-induced errors, equal on both axes."""
-        m, a = OpticalDisplacement.noise_sigma_px(step, cfg)
-        return np.eye(2) * (m * m + a * a)
+        return np.eye(2) * OpticalDisplacement.noise_var_px2(step, cfg)
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -158,26 +169,27 @@ class TrueAirspeed:
     """Measured true airspeed (m/s): ``(1 + tas_scale) * |v_ground - wind|`` with ``v_ground`` 3-D (vertical speed
     from the state) and the wind horizontal, as PX4 EKF2 and ArduPilot fuse it."""
 
-    @staticmethod
-    def _air(x: Vec) -> tuple[float, float, float, float]:
-        an, ae, ad = x[_VN] - x[_WN], x[_VE] - x[_WE], x[_VD]
-        return an, ae, ad, max(math.sqrt(an * an + ae * ae + ad * ad), MIN_AIR_SPEED_M_S)
-
     def predict(self, x: Vec) -> Vec:
-        speed = self._air(x)[3]
-        return np.array([(1.0 + x[_TS]) * speed])
+        return np.array([self.row(x)[0]])
 
     def jacobian(self, x: Vec) -> Mat:
         return self.linearise(x)[1]
 
     def linearise(self, x: Vec) -> tuple[Vec, Mat]:
-        an, ae, ad, speed = self._air(x)
-        k = (1.0 + x[_TS]) / speed
-        H = np.zeros((1, S.dim))
-        H[0, _VN], H[0, _VE], H[0, _VD] = k * an, k * ae, k * ad
-        H[0, _WN], H[0, _WE] = -k * an, -k * ae
-        H[0, _TS] = speed
-        return np.array([(1.0 + x[_TS]) * speed]), H
+        z, h = self.row(x)
+        return np.array([z]), h[None, :]
+
+    @staticmethod
+    def row(x: Vec) -> tuple[float, Vec]:
+        """``(z_hat, h)``: the predicted airspeed (m/s) and the Jacobian row (n,)."""
+        xl = x.tolist()
+        an, ae, ad = xl[_VN] - xl[_WN], xl[_VE] - xl[_WE], xl[_VD]
+        speed = max(math.sqrt(an * an + ae * ae + ad * ad), MIN_AIR_SPEED_M_S)
+        scale = 1.0 + xl[_TS]
+        k = scale / speed
+        h = np.zeros(S.dim)
+        h[_VN], h[_VE], h[_VD], h[_WN], h[_WE], h[_TS] = k * an, k * ae, k * ad, -k * an, -k * ae, speed
+        return scale * speed, h
 
     @staticmethod
     def noise(cfg: EkfConfig) -> Mat:
@@ -223,44 +235,54 @@ class SyntheticSideslip:
     R_nb_ahrs: Mat
 
     def _parts(self, x: Vec) -> tuple[float, float, tuple[float, float, float], tuple[float, float, float],
-                                      tuple[float, float]]:
-        """Body-frame air velocity ``(vb_x, vb_y)``, the body x and y axes in NED (columns 0 and 1 of ``R_nb_ahrs``)
-        and ``w = R_z(yaw_bias) v_air`` (N, E), so that ``vb = R_nb_ahrs^T [w, v_air_d]``.
+                                      tuple[float, float], tuple[float, float]]:
+        """Body-frame air velocity ``(vb_x, vb_y)``, the body x and y axes in NED (columns 0 and 1 of ``R_nb_ahrs``),
+        ``w = R_z(yaw_bias) v_air`` (N, E), so that ``vb = R_nb_ahrs^T [w, v_air_d]``, and ``(cos, sin)`` of
+        ``yaw_bias``.
 
         Scalar arithmetic: this runs with every airspeed sample, and nine multiplications are cheaper than four
         3x3 NumPy products."""
-        an, ae, ad = x[_VN] - x[_WN], x[_VE] - x[_WE], x[_VD]
-        c, s = math.cos(x[_YB]), math.sin(x[_YB])
+        xl = x.tolist()
+        an, ae, ad = xl[_VN] - xl[_WN], xl[_VE] - xl[_WE], xl[_VD]
+        c, s = math.cos(xl[_YB]), math.sin(xl[_YB])
         wn, we = c * an - s * ae, s * an + c * ae            # R_z(yaw_bias) = R_z(-yaw_bias)^T
         (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = self.R_nb_ahrs.tolist()
         vbx = r00 * wn + r10 * we + r20 * ad                 # (R_nb^T w)_x: column 0 of R_nb
         vby = r01 * wn + r11 * we + r21 * ad
-        return vbx, vby, (r00, r10, r20), (r01, r11, r21), (wn, we)
+        return vbx, vby, (r00, r10, r20), (r01, r11, r21), (wn, we), (c, s)
 
     def predict(self, x: Vec) -> Vec:
-        vbx, vby, _, _, _ = self._parts(x)
+        vbx, vby, _, _, _, _ = self._parts(x)
         return np.array([vby / max(vbx, MIN_AIR_SPEED_M_S)])
 
     def jacobian(self, x: Vec) -> Mat:
         return self.linearise(x)[1]
 
     def linearise(self, x: Vec) -> tuple[Vec, Mat]:
-        vbx, vby, bx, by, (wn, we) = self._parts(x)
+        z, h = self.row(x)
+        return np.array([z]), h[None, :]
+
+    def row(self, x: Vec) -> tuple[float, Vec]:
+        """``(z_hat, h)``: the predicted sideslip (rad) and the Jacobian row (n,)."""
+        vbx, vby, bx, by, (wn, we), (c, s) = self._parts(x)
         vx = max(vbx, MIN_AIR_SPEED_M_S)
         gx, gy = -vby / (vx * vx), 1.0 / vx                  # d(vb_y / vb_x) / d(vb_x, vb_y)
         # d beta / d w (w = R_z(b) v_air): g_x * body_x + g_y * body_y, then through R_z(b) to v_air
         dw = (gx * bx[0] + gy * by[0], gx * bx[1] + gy * by[1], gx * bx[2] + gy * by[2])
-        c, s = math.cos(x[_YB]), math.sin(x[_YB])
         dn, de = c * dw[0] + s * dw[1], -s * dw[0] + c * dw[1]
-        H = np.zeros((1, S.dim))
-        H[0, _VN], H[0, _VE], H[0, _VD] = dn, de, dw[2]
-        H[0, _WN], H[0, _WE] = -dn, -de
-        H[0, _YB] = dw[0] * -we + dw[1] * wn               # d w / d yaw_bias = (-w_E, w_N, 0)
-        return np.array([vby / vx]), H
+        h = np.zeros(S.dim)
+        h[_VN], h[_VE], h[_VD], h[_WN], h[_WE] = dn, de, dw[2], -dn, -de
+        h[_YB] = dw[0] * -we + dw[1] * wn                   # d w / d yaw_bias = (-w_E, w_N, 0)
+        return vby / vx, h
 
     @staticmethod
     def noise(cfg: EkfConfig) -> Mat:
         return np.array([[cfg.sideslip_sigma_rad**2]])
+
+
+_H_BARO = np.zeros(S.dim)
+_H_BARO[_PD], _H_BARO[_BB] = -1.0, 1.0
+_H_BARO.flags.writeable = False
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -269,16 +291,18 @@ class BaroAltitude:
     """Barometric altitude above the reference ground (m): ``-pos_d + baro_bias``."""
 
     def predict(self, x: Vec) -> Vec:
-        return np.array([-x[_PD] + x[_BB]])
+        return np.array([self.row(x)[0]])
 
     def jacobian(self, x: Vec) -> Mat:
-        H = np.zeros((1, S.dim))
-        H[0, _PD] = -1.0
-        H[0, _BB] = 1.0
-        return H
+        return _H_BARO[None, :].copy()
 
     def linearise(self, x: Vec) -> tuple[Vec, Mat]:
         return self.predict(x), self.jacobian(x)
+
+    @staticmethod
+    def row(x: Vec) -> tuple[float, Vec]:
+        """``(z_hat, h)``: the predicted baro altitude (m) and the (constant, read-only) Jacobian row (n,)."""
+        return float(x[_BB] - x[_PD]), _H_BARO
 
     @staticmethod
     def noise(cfg: EkfConfig) -> Mat:
@@ -288,9 +312,17 @@ class BaroAltitude:
 # --------------------------------------------------------------------------------------------------------------
 @dataclass(frozen=True, slots=True)
 class GnssPosition:
-    """GNSS position in the local NED frame (m): ``pos_ne`` (``dim=2``) or ``pos_ne, pos_d`` (``dim=3``)."""
+    """GNSS position in the local NED frame (m): ``pos_ne`` (``dim=2``) or ``pos_ne, pos_d`` (``dim=3``).
+
+    A direct measurement of states: ``H`` is the rows :attr:`state_idx` of the identity, which the EKF uses as
+    column selections of ``P`` instead of products."""
 
     dim: int = 3
+
+    @property
+    def state_idx(self) -> list[int]:
+        """Indices of the measured states, in measurement order."""
+        return list(range(S.pos_ned.start, S.pos_ned.start + self.dim))
 
     def predict(self, x: Vec) -> Vec:
         return x[S.pos_ned][: self.dim].copy()
@@ -303,18 +335,28 @@ class GnssPosition:
     def linearise(self, x: Vec) -> tuple[Vec, Mat]:
         return self.predict(x), self.jacobian(x)
 
+    def variances(self, cfg: EkfConfig, sigma_ne_m: float | None = None, sigma_d_m: float | None = None) -> list[float]:
+        """Diagonal of :meth:`noise` (m^2), as floats."""
+        ne = cfg.gnss_pos_ne_sigma_m if sigma_ne_m is None else float(sigma_ne_m)
+        d = cfg.gnss_pos_d_sigma_m if sigma_d_m is None else float(sigma_d_m)
+        return [ne * ne, ne * ne, d * d][: self.dim]
+
     def noise(self, cfg: EkfConfig, sigma_ne_m: float | None = None, sigma_d_m: float | None = None) -> Mat:
         """Diagonal covariance (m^2); the receiver's own accuracies replace the config's when given."""
-        s = [cfg.gnss_pos_ne_sigma_m if sigma_ne_m is None else sigma_ne_m] * 2
-        s.append(cfg.gnss_pos_d_sigma_m if sigma_d_m is None else sigma_d_m)
-        return np.diag(np.square(s[: self.dim]))
+        return np.diag(self.variances(cfg, sigma_ne_m, sigma_d_m))
 
 
 @dataclass(frozen=True, slots=True)
 class GnssVelocity:
-    """GNSS ground velocity (m/s): ``vel_ne`` (``dim=2``, e.g. from ground speed and course) or ``vel_ned``."""
+    """GNSS ground velocity (m/s): ``vel_ne`` (``dim=2``, e.g. from ground speed and course) or ``vel_ned``.
+    Like :class:`GnssPosition`, a direct measurement of the states :attr:`state_idx`."""
 
     dim: int = 3
+
+    @property
+    def state_idx(self) -> list[int]:
+        """Indices of the measured states, in measurement order."""
+        return list(range(S.vel_ned.start, S.vel_ned.start + self.dim))
 
     def predict(self, x: Vec) -> Vec:
         return x[S.vel_ned][: self.dim].copy()
@@ -327,7 +369,13 @@ class GnssVelocity:
     def linearise(self, x: Vec) -> tuple[Vec, Mat]:
         return self.predict(x), self.jacobian(x)
 
+    def variances(self, cfg: EkfConfig, sigma_ne_m_s: float | None = None,
+                  sigma_d_m_s: float | None = None) -> list[float]:
+        """Diagonal of :meth:`noise` ((m/s)^2), as floats."""
+        ne = cfg.gnss_vel_ne_sigma_m_s if sigma_ne_m_s is None else float(sigma_ne_m_s)
+        d = cfg.gnss_vel_d_sigma_m_s if sigma_d_m_s is None else float(sigma_d_m_s)
+        return [ne * ne, ne * ne, d * d][: self.dim]
+
     def noise(self, cfg: EkfConfig, sigma_ne_m_s: float | None = None, sigma_d_m_s: float | None = None) -> Mat:
-        s = [cfg.gnss_vel_ne_sigma_m_s if sigma_ne_m_s is None else sigma_ne_m_s] * 2
-        s.append(cfg.gnss_vel_d_sigma_m_s if sigma_d_m_s is None else sigma_d_m_s)
-        return np.diag(np.square(s[: self.dim]))
+        """Diagonal covariance ((m/s)^2); the receiver's own accuracies replace the config's when given."""
+        return np.diag(self.variances(cfg, sigma_ne_m_s, sigma_d_m_s))

@@ -22,6 +22,8 @@ name               size  unit   meaning
 ``baro_bias``      1     m      barometric altitude minus true height above the reference ground
 ``terrain_h``      1     m      height of the ground under the aircraft above the reference ground (up)
 ``tas_scale``      1     -      airspeed scale error: ``tas_measured = (1 + tas_scale) * tas_true``
+``att_delay``      1     s      time misalignment of the AHRS attitude: a sample stamped ``t`` describes the
+                                body at ``t - att_delay`` (the AHRS latency not compensated upstream)
 ``base_pos_ne``    2     m      stochastic clone of ``pos_ne`` at the optical cycle's base snapshot
 ``base_pos_d``     1     m      stochastic clone of ``pos_d`` at the base snapshot
 =================  ====  =====  ============================================================================
@@ -53,6 +55,14 @@ Why this set
       scale against GNSS velocity separates the terrain from the aircraft's height.
     * ``tas_scale``: pitot calibration errors of a few percent bias the wind along the heading; the scale is
       observable in turns while the ground velocity is known (GNSS or optical).
+    * ``att_delay``: an AHRS whose attitude lags by ``tau`` rotates the specific force late: the velocity direction
+      lags the turn by ``turn rate * tau`` (a roll-in at 45 deg of bank with a 0.1 s lag is a 0.7 m/s lateral
+      error that no white acceleration noise describes, since it is the same every turn).  The true attitude is
+      ``R_ahrs (I + [omega x] tau)`` (body rates ``omega`` from the IMU's gyro), so the prediction carries the
+      term ``tau R_ahrs (omega x f)``, linear in ``tau``; turns against GNSS, optical and airspeed data make it
+      observable.  It is a constant of the installation (a slow random walk lets it follow a compensation that
+      changes upstream).  The measurement models take the attitude as given (the sideslip's heading lag, ``turn
+      rate * tau``, is well inside its sigma; the optical frames carry the optical estimator's own attitude).
     * ``base_pos_ne``/``base_pos_d``: the optical measurement is a position *change* since the base snapshot
       (stochastic cloning): at the snapshot the position and its covariance rows are copied into the clone, which
       is then constant (identity transition, no process noise) while the current position moves on.  The
@@ -142,6 +152,7 @@ S = StateLayout(
         ("baro_bias", 1),
         ("terrain_h", 1),
         ("tas_scale", 1),
+        ("att_delay", 1),
         ("base_pos_ne", 2),
         ("base_pos_d", 1),
     ],

@@ -131,6 +131,16 @@ class GsoeEstimator:
     def push_imu(self, s: ImuSample) -> bool:
         return self.buffer.push_imu(s)
 
+    def fusion_attitude(self, t_us: int) -> AttitudeSample | None:
+        """The attitude at ``t_us`` for the EKF's prediction and heading: the AHRS with its latency removed and its
+        noise averaged (:meth:`AttitudeBuffer.compensated_at`), so that the EKF and the optical frames share one
+        attitude; None when the AHRS does not cover ``t_us``."""
+        q = self.buffer.compensated_at(t_us, smooth=True)
+        if q is None:
+            return None
+        roll, pitch, yaw = quat.to_euler321(q)
+        return AttitudeSample(t_us, roll, pitch, yaw)
+
     # ------------------------------------------------------------------------------------------------------
     def process_frame(self, t_us: int, image: Frame, height_agl_m: float = math.nan) -> list[GsoeStep]:
         """Process one raw frame exposed at ``t_us``; returns 0-2 steps (a cycle's last step, a new base).

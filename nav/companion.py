@@ -376,7 +376,8 @@ class Estimator:
         if self.gsoe.push_imu(s):
             self.newest_imu_us = max(self.newest_imu_us, s.t_us)
         if self.ekf is not None and self._att is not None:
-            self.ekf.predict(s, self._att)
+            # the attitude the optical frames use: AHRS latency removed, noise averaged (gsoe.attitude)
+            self.ekf.predict(s, self.gsoe.fusion_attitude(s.t_us) or self._att)
 
     def covers(self, t_us: int) -> bool:
         """Attitude and IMU samples reach the exposure time ``t_us``."""

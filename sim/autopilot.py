@@ -27,6 +27,19 @@ lateral guidance
     radius at the roll limit) or when the aircraft passes the line through the waypoint normal to the leg.
     Missions loop.  Heading hold (``set_heading_command``) commands roll from the heading error; roll hold
     (``set_roll_command``) holds a bank angle, both with height and airspeed hold.
+
+Rates
+-----
+As on a real autopilot the loops run at their own rates, not at the dynamics step, and their outputs are held
+(zero-order hold) until they run again: the lateral guidance and the energy split (roll and pitch commands,
+throttle) at ``guidance_rate_hz`` (50 Hz), the attitude and rate loops (surface commands) at
+``attitude_rate_hz`` (50 Hz).  ArduPlane does the same: its scheduler runs the attitude and rate controllers
+(``stabilize``) in the main loop, whose default rate for planes is 50 Hz (``SCHEDULER_DEFAULT_LOOP_RATE`` in
+``AP_Scheduler.cpp``), TECS at 50 Hz and the L1 navigation at 10 Hz (``Plane.cpp``'s scheduler table); hobby
+servos take a new pulse every 20 ms (50 Hz) and ours lag 0.04 s (the aircraft file), which smooths the steps of
+the hold.  A loop runs at the first call at or after each multiple of its period on the autopilot's clock (the
+sum of the ``dt_s`` it was given), so its rate is exact on average whatever the dynamics step; its integrators
+integrate over the time since its previous run.  A mode change makes the guidance run at the next call.
 """
 
 from __future__ import annotations
@@ -44,6 +57,9 @@ from sim.dynamics import STANDARD_G_M_S2, ControlCommand
 from sim.truth import TruthState
 
 G_M_S2: Final = STANDARD_G_M_S2
+SCHEDULE_TOLERANCE_S: Final = 1e-9
+"""A loop is due when the autopilot's clock is within this of its scheduled time (absorbs the rounding of a clock
+summed from steps)."""
 
 Mode = Literal["idle", "mission", "heading", "roll"]
 
@@ -109,6 +125,9 @@ class AutopilotGains:
     heading_kp: float = 1.0
     waypoint_radius_m: float = 15.0
     integrator_limit: float = 0.5
+    # loop rates (see the module docstring): outer loops (guidance, energy) and inner loops (attitude, rates)
+    guidance_rate_hz: float = 50.0
+    attitude_rate_hz: float = 50.0
 
     def __post_init__(self) -> None:
         in_range(self.roll_limit_rad, math.radians(5.0), math.radians(75.0), "roll_limit_rad")
@@ -132,6 +151,10 @@ class AutopilotGains:
         in_range(self.l1_damping, 0.1, 2.0, "l1_damping")
         in_range(self.waypoint_radius_m, 0.0, 10000.0, "waypoint_radius_m")
         in_range(self.integrator_limit, 0.0, 1.0, "integrator_limit")
+        in_range(self.guidance_rate_hz, 1.0, 10000.0, "guidance_rate_hz")
+        in_range(self.attitude_rate_hz, 1.0, 10000.0, "attitude_rate_hz")
+        require(self.guidance_rate_hz <= self.attitude_rate_hz, "guidance_rate_hz",
+                f"the outer loops must not run faster than the inner ones (attitude_rate_hz = {self.attitude_rate_hz})")
 
 
 def _clip(x: float, lo: float, hi: float) -> float:
@@ -148,11 +171,32 @@ class _PI:
 
     def update(self, err: float, dt: float, extra: float, scale: float, lo: float, hi: float) -> float:
         """``extra + scale * (kp err) + i``, clipped to [lo, hi]; ``i`` integrates ``scale * ki * err``."""
-        out = extra + scale * self.kp * err + self.i
+        p_term = extra + scale * self.kp * err
+        out = p_term + self.i
         if lo < out < hi or (out >= hi and err < 0.0) or (out <= lo and err > 0.0):
-            self.i = _clip(self.i + scale * self.ki * err * dt, self.i_min, self.i_max)
-            out = extra + scale * self.kp * err + self.i
-        return _clip(out, lo, hi)
+            i = self.i + scale * self.ki * err * dt
+            self.i = i = self.i_min if i < self.i_min else self.i_max if i > self.i_max else i  # _clip, written out
+            out = p_term + i
+        return lo if out < lo else hi if out > hi else out
+
+
+class _LoopClock:
+    """Schedule of one loop of period ``period_s``: due at the first call at or after each multiple of the period."""
+
+    __slots__ = ("period_s", "next_s", "last_s")
+
+    def __init__(self, rate_hz: float) -> None:
+        self.period_s = 1.0 / rate_hz
+        self.next_s = -math.inf
+        self.last_s: float | None = None
+
+    def run(self, t_s: float, dt_s: float) -> float:
+        """Mark a run at ``t_s``; returns the time to integrate over (since the previous run; at the first run the
+        interval the output will be held, one period or one step if longer)."""
+        dt = max(self.period_s, dt_s) if self.last_s is None else t_s - self.last_s
+        self.last_s = t_s
+        self.next_s = (math.floor((t_s + SCHEDULE_TOLERANCE_S) / self.period_s) + 1.0) * self.period_s
+        return dt
 
 
 class Autopilot:
@@ -188,6 +232,11 @@ class Autopilot:
         self.roll_cmd_rad = 0.0
         self.pitch_cmd_rad = 0.0
         self.climb_cmd_m_s = 0.0
+        self._throttle = t.throttle_norm
+        self._clock_s = 0.0
+        self._guidance_clock = _LoopClock(g.guidance_rate_hz)
+        self._attitude_clock = _LoopClock(g.attitude_rate_hz)
+        self._cmd: ControlCommand | None = None  # the held surface and throttle command
 
     # ------------------------------------------------------------------------------------------------------------
     @property
@@ -222,6 +271,7 @@ class Autopilot:
         self._leg_start = None
         self._mode = "mission"
         self.waypoints_reached = 0
+        self._guidance_clock.next_s = -math.inf
 
     def set_heading_command(self, yaw_rad: float, height_m: float | None = None,
                             airspeed_m_s: float | None = None) -> None:
@@ -232,6 +282,7 @@ class Autopilot:
         self._set_targets(height_m, airspeed_m_s)
         self._heading_cmd = float(wrap_pi(yaw_rad))
         self._mode = "heading"
+        self._guidance_clock.next_s = -math.inf
 
     def set_roll_command(self, roll_rad: float, height_m: float | None = None,
                          airspeed_m_s: float | None = None) -> None:
@@ -241,6 +292,7 @@ class Autopilot:
         self._set_targets(height_m, airspeed_m_s)
         self._roll_hold = _clip(roll_rad, -self.gains.roll_limit_rad, self.gains.roll_limit_rad)
         self._mode = "roll"
+        self._guidance_clock.next_s = -math.inf
 
     def _set_targets(self, height_m: float | None, airspeed_m_s: float | None) -> None:
         if height_m is not None:
@@ -253,12 +305,11 @@ class Autopilot:
     # ------------------------------------------------------------------------------------------------------------
     def _l1_roll(self, truth: TruthState) -> float:
         g = self.gains
-        pos = truth.pos_ned_m
-        pn, pe = float(pos[0]), float(pos[1])
+        pn, pe, _ = truth.pos_ned_m.tolist()
         if self._leg_start is None:
             self._leg_start = (pn, pe)
         wp = self._waypoints[self._index]
-        vn, ve = float(truth.vel_ned_m_s[0]), float(truth.vel_ned_m_s[1])
+        vn, ve, _ = truth.vel_ned_m_s.tolist()
         gs = max(math.hypot(vn, ve), 1.0)
         # waypoint switching: acceptance radius, turn anticipation, or passing the normal through the waypoint
         while True:
@@ -308,12 +359,26 @@ class Autopilot:
         return 0 if self._loop else None
 
     def update(self, truth: TruthState, dt_s: float) -> ControlCommand:
-        """Commands for the next ``dt_s`` from the truth now."""
+        """Commands for the next ``dt_s`` from the truth now.
+
+        Each loop runs when it is due (see the module docstring); in between the last command is returned (the
+        same object, so :meth:`sim.dynamics.FlightDynamics.step` need not write it again).
+        """
         if not (math.isfinite(dt_s) and dt_s > 0.0):
             raise ValueError(f"dt_s must be finite and > 0, got {dt_s!r}")
+        t = self._clock_s
+        self._clock_s = t + dt_s
+        gc, ac = self._guidance_clock, self._attitude_clock
+        if t >= gc.next_s - SCHEDULE_TOLERANCE_S:
+            self._guidance(truth, gc.run(t, dt_s))
+        if self._cmd is None or t >= ac.next_s - SCHEDULE_TOLERANCE_S:
+            self._cmd = self._attitude(truth, ac.run(t, dt_s))
+        return self._cmd
+
+    def _guidance(self, truth: TruthState, dt_s: float) -> None:
+        """Outer loops: roll command (lateral mode), pitch command (climb rate) and throttle (airspeed)."""
         g = self.gains
-        phi, theta, psi = truth.roll_rad, truth.pitch_rad, truth.yaw_rad
-        p, q, r = (float(x) for x in truth.rates_b_rad_s)
+        phi, theta = truth.roll_rad, truth.pitch_rad
         tas = max(truth.tas_m_s, 1.0)
         height = truth.height_agl_m
         if self._height_cmd is None:
@@ -327,7 +392,7 @@ class Autopilot:
         if self._mode == "mission":
             roll_cmd = self._l1_roll(truth)
         elif self._mode == "heading":
-            turn_rate = g.heading_kp * float(wrap_pi(self._heading_cmd - psi))
+            turn_rate = g.heading_kp * float(wrap_pi(self._heading_cmd - truth.yaw_rad))
             roll_cmd = math.atan(tas * turn_rate / G_M_S2)
         elif self._mode == "roll":
             roll_cmd = self._roll_hold
@@ -341,24 +406,31 @@ class Autopilot:
         cphi = max(math.cos(phi), math.cos(g.roll_limit_rad))
         ff = math.asin(_clip(climb_cmd / tas, -1.0, 1.0)) + g.pitch_turn_ff_rad * (1.0 / cphi - 1.0)
         pitch_cmd = self._climb_pi.update(climb_cmd - climb, dt_s, ff, 1.0, -g.pitch_limit_rad, g.pitch_limit_rad)
-        throttle = self._speed_pi.update(self._airspeed_cmd - tas, dt_s, g.throttle_climb_ff * climb_cmd, 1.0,
-                                         g.throttle_min, g.throttle_max)
+        self._throttle = self._speed_pi.update(self._airspeed_cmd - tas, dt_s, g.throttle_climb_ff * climb_cmd, 1.0,
+                                               g.throttle_min, g.throttle_max)
+        self.roll_cmd_rad, self.pitch_cmd_rad, self.climb_cmd_m_s = roll_cmd, pitch_cmd, climb_cmd
 
-        # attitude -> rates -> surfaces
+    def _attitude(self, truth: TruthState, dt_s: float) -> ControlCommand:
+        """Inner loops: attitude -> rates -> surfaces, toward the held roll and pitch commands."""
+        g = self.gains
+        phi, theta = truth.roll_rad, truth.pitch_rad
+        p, q, r = truth.rates_b_rad_s.tolist()
+        tas = max(truth.tas_m_s, 1.0)
+        roll_cmd, pitch_cmd = self.roll_cmd_rad, self.pitch_cmd_rad
         scale = _clip((g.airspeed_ref_m_s / tas) ** 2, g.gain_scale_min, g.gain_scale_max)
         psi_dot = G_M_S2 * math.tan(phi) / tas  # coordinated-turn yaw rate
-        p_cmd = _clip(g.roll_kp * (roll_cmd - phi) - psi_dot * math.sin(theta), -g.roll_rate_limit_rad_s,
+        sphi, cphi, stheta, ctheta = math.sin(phi), math.cos(phi), math.sin(theta), math.cos(theta)
+        p_cmd = _clip(g.roll_kp * (roll_cmd - phi) - psi_dot * stheta, -g.roll_rate_limit_rad_s,
                       g.roll_rate_limit_rad_s)
-        q_cmd = _clip(g.pitch_kp * (pitch_cmd - theta) + psi_dot * math.sin(phi) * math.cos(theta),
+        q_cmd = _clip(g.pitch_kp * (pitch_cmd - theta) + psi_dot * sphi * ctheta,
                       -g.pitch_rate_limit_rad_s, g.pitch_rate_limit_rad_s)
-        r_turn = psi_dot * math.cos(phi) * math.cos(theta)
+        r_turn = psi_dot * cphi * ctheta
         aileron = self._roll_pi.update(p_cmd - p, dt_s, scale * g.roll_rate_ff * p_cmd, scale, -1.0, 1.0)
         elevator = self._pitch_pi.update(q_cmd - q, dt_s, scale * g.pitch_rate_ff * q_cmd, scale, -1.0, 1.0)
         rudder = self._yaw_pi.update(truth.beta_rad, dt_s, -scale * g.yaw_damper_kp * (r - r_turn), scale,
                                      -1.0, 1.0)
-        self.roll_cmd_rad, self.pitch_cmd_rad, self.climb_cmd_m_s = roll_cmd, pitch_cmd, climb_cmd
         return ControlCommand(aileron_norm=aileron, elevator_norm=elevator, rudder_norm=rudder,
-                              throttle_norm=throttle)
+                              throttle_norm=self._throttle)
 
     def waypoints_array(self) -> np.ndarray:
         """The mission as an (N, 4) array of north_m, east_m, height_m, airspeed_m_s (for logs and plots)."""

@@ -26,6 +26,12 @@ air data
     TAS, alpha and beta computed here from the ground velocity, the attitude and the total wind, all at the end
     of the step (JSBSim's own air data lag by one step); the same wind is the one JSBSim flies the next step in.
 
+Cost (the loop runs 240 times per simulated second): the property nodes are looked up once; a step writes the
+commands only when the autopilot hands over a new :class:`ControlCommand` (it holds them between its loop
+updates), writes the wind, reads 15 values and builds the truth with one array (its vectors are views of it) and
+one named tuple.  JSBSim's own step (about 6 us, after the aircraft file dropped four contact points that never
+touch in a flight) is the floor.
+
 Trim: JSBSim's ``simulation/do_simple_trim`` cannot trim this aircraft (it evaluates with integration suspended,
 which freezes the propeller's speed, so thrust does not follow the throttle) and it resets the wind.  We solve the
 steady straight-and-level, wings-level state ourselves (alpha, beta, throttle, elevator, aileron, rudder that zero
@@ -162,6 +168,7 @@ class FlightDynamics:
         self._integrator_defaults = {k: fdm[k] for k in _INTEGRATORS}
         fdm["atmosphere/turb-type"] = 0
         self._r_m, self._r_n = _radii_m(params.ref_lat_rad)
+        self._max_force2 = params.max_specific_force_m_s2**2
         self._cos_lat0 = math.cos(params.ref_lat_rad)
         pm = fdm.get_property_manager()
 
@@ -185,6 +192,10 @@ class FlightDynamics:
         self._accel_nodes = [node(n) for n in (
             "accelerations/udot-ft_sec2", "accelerations/vdot-ft_sec2", "accelerations/wdot-ft_sec2",
             "accelerations/pdot-rad_sec2", "accelerations/qdot-rad_sec2", "accelerations/rdot-rad_sec2")]
+        self._getters = [n.get_double_value for n in self._in]
+        self._cmd_setters = [n.set_double_value for n in self._cmd_nodes]
+        self._wind_setters = [n.set_double_value for n in self._wind_nodes]
+        self._last_cmd: ControlCommand | None = None  # the command JSBSim holds (set again only when it changes)
         self._steps = 0
         self._truth: TruthState | None = None
         self._trim_command: ControlCommand | None = None
@@ -212,12 +223,18 @@ class FlightDynamics:
             self._fdm[k] = 0 if frozen else self._integrator_defaults[k]
 
     def _set_commands(self, aileron: float, elevator: float, rudder: float, throttle: float) -> None:
-        for n, v in zip(self._cmd_nodes, (aileron, elevator, rudder, throttle), strict=True):
-            n.set_double_value(v)
+        sa, se, sr, st = self._cmd_setters
+        sa(aileron)
+        se(elevator)
+        sr(rudder)
+        st(throttle)
+        self._last_cmd = None
 
-    def _set_wind(self, wind_ned_m_s: np.ndarray) -> None:
-        for n, v in zip(self._wind_nodes, wind_ned_m_s, strict=True):
-            n.set_double_value(float(v) / FT_M)
+    def _set_wind(self, wn_m_s: float, we_m_s: float, wd_m_s: float) -> None:
+        sn, se, sd = self._wind_setters
+        sn(wn_m_s / FT_M)
+        se(we_m_s / FT_M)
+        sd(wd_m_s / FT_M)
 
     def _latlon(self, north_m: float, east_m: float) -> tuple[float, float]:
         p = self.params
@@ -243,7 +260,7 @@ class FlightDynamics:
             fdm[r] = 0.0
         self._set_commands(aileron, elevator, rudder, throttle)
         fdm.run_ic()
-        self._set_wind(np.zeros(3))
+        self._set_wind(0.0, 0.0, 0.0)
         self._freeze(True)
         for _ in range(settle_steps):
             fdm.run()
@@ -299,12 +316,12 @@ class FlightDynamics:
 
         # Start in the wind with the trimmed air-relative state: ground velocity = air velocity + steady wind.
         self.wind.reset()
-        sample = self.wind.update(0.0, 0.0, height_m, airspeed_m_s)
+        wn, we, wd, sn, se = self.wind.advance(0.0, 0.0, height_m, airspeed_m_s)
         ca, sa, cb, sb = math.cos(alpha), math.sin(alpha), math.cos(beta), math.sin(beta)
         v_air_b = airspeed_m_s * np.array([ca * cb, sb, sa * cb])
         ct, st, cy, sy = math.cos(alpha), math.sin(alpha), math.cos(yaw), math.sin(yaw)  # theta = alpha, phi = 0
         r_nb = np.array([[ct * cy, -sy, st * cy], [ct * sy, cy, st * sy], [-st, 0.0, ct]])
-        v_ground = r_nb @ v_air_b + sample.steady_ned_m_s
+        v_ground = r_nb @ v_air_b + np.array([sn, se, 0.0])
         fdm = self._fdm
         self._freeze(False)
         fdm["ic/lat-geod-rad"] = lat
@@ -320,32 +337,38 @@ class FlightDynamics:
             fdm[r] = 0.0
         self._set_commands(aileron, elevator, rudder, throttle)
         fdm.run_ic()  # resets JSBSim's wind: set ours after it
-        self._set_wind(sample.total_ned_m_s)
+        self._set_wind(wn, we, wd)
         self._steps = 0
         self._trim_command = cmd
+        self._last_cmd = cmd
         self._tas_m_s = airspeed_m_s
-        self._truth = self._read_truth(sample.total_ned_m_s, sample.steady_ned_m_s)
+        self._truth = self._read_truth([g() for g in self._getters], wn, we, wd, sn, se)
         return cmd
 
     # ------------------------------------------------------------------------------------------------------------
     def step(self, cmd: ControlCommand) -> TruthState:
         """Fly one step of ``dt_s`` with ``cmd``; returns the truth at the end of the step.
 
-        Raises :class:`DynamicsError` when the aircraft hits the ground or the state stops being physical; the
-        flight then needs a new :meth:`trim`.
+        The commands are written to JSBSim only when ``cmd`` is a different object from the last one (a
+        :class:`ControlCommand` is immutable, so an autopilot that holds its output between its own updates costs
+        no property writes).  Raises :class:`DynamicsError` when the aircraft hits the ground or the state stops
+        being physical; the flight then needs a new :meth:`trim`.
         """
         if self._truth is None:
             raise RuntimeError("FlightDynamics.trim() must be called before step()")
-        if not isinstance(cmd, ControlCommand):
-            raise TypeError(f"cmd must be a ControlCommand, got {type(cmd).__name__}")
-        self._set_commands(cmd.aileron_norm, cmd.elevator_norm, cmd.rudder_norm, cmd.throttle_norm)
+        if cmd is not self._last_cmd:
+            if not isinstance(cmd, ControlCommand):
+                raise TypeError(f"cmd must be a ControlCommand, got {type(cmd).__name__}")
+            self._set_commands(cmd.aileron_norm, cmd.elevator_norm, cmd.rudder_norm, cmd.throttle_norm)
+            self._last_cmd = cmd
         self._fdm.run()
         self._steps += 1
-        height = self._in[2].get_double_value() * FT_M
+        state = [g() for g in self._getters]
+        dt = self.params.dt_s
         try:
-            sample = self.wind.update(self.t_s, self.params.dt_s, height, self._tas_m_s)
-            self._set_wind(sample.total_ned_m_s)  # the wind of the next step, at the new state
-            truth = self._read_truth(sample.total_ned_m_s, sample.steady_ned_m_s)
+            wn, we, wd, sn, se = self.wind.advance(self._steps * dt, dt, state[2] * FT_M, self._tas_m_s)
+            self._set_wind(wn, we, wd)  # the wind of the next step, at the new state
+            truth = self._read_truth(state, wn, we, wd, sn, se)
         except (DynamicsError, ValueError) as e:
             self._truth = None  # the flight is over: step() now asks for a new trim
             raise DynamicsError(str(e)) from e
@@ -359,14 +382,19 @@ class FlightDynamics:
             raise RuntimeError("FlightDynamics.trim() must be called before truth()")
         return self._truth
 
-    def _read_truth(self, wind_ned: np.ndarray, steady_ned: np.ndarray) -> TruthState:
-        (lat, lon, h_ft, vn_f, ve_f, vd_f, phi, theta, psi, p, q, r, ax_f, ay_f, az_f) = (
-            n.get_double_value() for n in self._in)
+    def _read_truth(self, state: list[float], wn: float, we: float, wd: float, sn: float, se: float) -> TruthState:
+        """The truth from JSBSim's ``state`` (the values of the nodes ``_in``, JSBSim units) and the total
+        (``wn, we, wd``) and steady (``sn, se``) wind, in m/s.
+
+        Cost: the state's vectors are views of one array built per step (one allocation instead of six), and the
+        named tuple is built by ``_make`` (no keyword handling).
+        """
+        (lat, lon, h_ft, vn_f, ve_f, vd_f, phi, theta, psi, p, q, r, ax_f, ay_f, az_f) = state
         p0 = self.params
         height = h_ft * FT_M
         vn, ve, vd = vn_f * FT_M, ve_f * FT_M, vd_f * FT_M
         # air-relative velocity in the body frame: R_bn (v - w)
-        an, ae, ad = vn - float(wind_ned[0]), ve - float(wind_ned[1]), vd - float(wind_ned[2])
+        an, ae, ad = vn - wn, ve - we, vd - wd
         cf, sf, ct, st, cp, sp = math.cos(phi), math.sin(phi), math.cos(theta), math.sin(theta), math.cos(psi), \
             math.sin(psi)
         u = ct * cp * an + ct * sp * ae - st * ad
@@ -376,31 +404,33 @@ class FlightDynamics:
         alpha = math.atan2(w, u)
         beta = math.asin(max(-1.0, min(1.0, v / tas))) if tas > 0.0 else 0.0
         ax, ay, az = ax_f * FT_M, ay_f * FT_M, az_f * FT_M
-        t = self.t_s
+        t = self._steps * p0.dt_s
         # a sum is finite only if every term is (NaN and inf propagate)
         if not math.isfinite(lat + lon + height + vn + ve + vd + phi + theta + psi + p + q + r + tas + ax + ay + az):
             raise DynamicsError(f"non-finite state at t={t:.3f} s")
-        f_abs = math.sqrt(ax * ax + ay * ay + az * az)
-        if f_abs > p0.max_specific_force_m_s2:
-            raise DynamicsError(f"specific force {f_abs:.0f} m/s^2 at t={t:.3f} s exceeds "
+        f2 = ax * ax + ay * ay + az * az
+        if f2 > self._max_force2:
+            raise DynamicsError(f"specific force {math.sqrt(f2):.0f} m/s^2 at t={t:.3f} s exceeds "
                                 f"{p0.max_specific_force_m_s2:.0f} m/s^2: numerical blow-up or impact")
         if height < p0.ground_clearance_m:
             raise DynamicsError(f"the aircraft hit the ground at t={t:.3f} s (height {height:.2f} m)")
         north = (lat - p0.ref_lat_rad) * self._r_m
         east = (lon - p0.ref_lon_rad) * self._r_n * self._cos_lat0
-        return TruthState(
-            t_s=t,
-            pos_ned_m=np.array([north, east, -height]),
-            vel_ned_m_s=np.array([vn, ve, vd]),
-            roll_rad=phi,
-            pitch_rad=theta,
-            yaw_rad=float(wrap_pi(psi)),
-            rates_b_rad_s=np.array([p, q, r]),
-            accel_b_m_s2=np.array([ax, ay, az]),
-            tas_m_s=tas,
-            alpha_rad=alpha,
-            beta_rad=beta,
-            wind_ned_m_s=np.array(wind_ned, dtype=float),
-            wind_steady_ned_m_s=np.array(steady_ned, dtype=float),
-            height_agl_m=height,
-        )
+        buf = np.array((north, east, -height, vn, ve, vd, p, q, r, ax, ay, az, wn, we, wd, sn, se, 0.0))
+        # TruthState._make takes the fields in their declared order (tests/test_dynamics.py checks each one)
+        return TruthState._make((
+            t,  # t_s
+            buf[0:3],  # pos_ned_m
+            buf[3:6],  # vel_ned_m_s
+            phi,  # roll_rad
+            theta,  # pitch_rad
+            float(wrap_pi(psi)),  # yaw_rad
+            buf[6:9],  # rates_b_rad_s
+            buf[9:12],  # accel_b_m_s2
+            tas,  # tas_m_s
+            alpha,  # alpha_rad
+            beta,  # beta_rad
+            buf[12:15],  # wind_ned_m_s
+            buf[15:18],  # wind_steady_ned_m_s
+            height,  # height_agl_m
+        ))

@@ -74,6 +74,7 @@ def wind_params(scn: Scenario) -> WindParams:
         turbulence_w20_m_s=SEVERITY_W20_M_S[w.turbulence_severity], turbulence_scale=w.turbulence_scale,
         gusts=w.gusts, gust_amplitude_m_s=w.gust_amplitude_m_s, gust_length_m=w.gust_length_m,
         gust_rate_hz=1.0 / w.gust_interval_s if w.gusts and w.gust_interval_s > 0 else 0.0,
+        turbulence_rate_hz=w.turbulence_rate_hz,
     )
 
 
@@ -94,6 +95,14 @@ class _Series:
     steps_valid: int = 0
     steps_total: int = 0
     cycle_figure: dict[str, Any] | None = None
+
+    def trim(self) -> None:
+        """Cut every series to its shortest column (an interrupt can land between the appends of one record)."""
+        for name in ("truth", "baseline", "ekf", "gnss", "gsd"):
+            cols: dict[str, list[float]] = getattr(self, name)
+            n = min(len(v) for v in cols.values())
+            for v in cols.values():
+                del v[n:]
 
     def arrays(self, name: str) -> dict[str, np.ndarray]:
         return {k: np.asarray(v, dtype=float) for k, v in getattr(self, name).items()}
@@ -287,7 +296,8 @@ def run_flight(scn: Scenario, *, seed: int, duration_s: float | None = None, out
                                     "yaw_rad": r.ahrs.yaw_rad})
             t0 = timers.add("gsoe", t0)
             if ekf is not None and r.imu is not None and last_att is not None:
-                ekf.predict(r.imu, last_att)
+                # the attitude the optical frames use too: AHRS latency removed, noise averaged (gsoe.attitude)
+                ekf.predict(r.imu, est.fusion_attitude(r.imu.t_us) or last_att)
             if r.airspeed is not None:
                 baseline.set_airspeed(r.airspeed.tas_m_s)
                 if ekf is not None:
@@ -343,6 +353,7 @@ def run_flight(scn: Scenario, *, seed: int, duration_s: float | None = None, out
         if runlog is not None:
             runlog.close()
     wall = time.perf_counter() - wall0
+    series.trim()
     out = compute_metrics(series, in_outage)
     out.update(
         scenario=scn.name, seed=seed, frames=frames, sim_s=truth.t_s, wall_s=wall,

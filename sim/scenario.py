@@ -72,6 +72,8 @@ MAX_WAYPOINTS = 10_000
 # metres, so a shorter leg cannot be flown and is almost certainly a typo (or a duplicated waypoint).
 MIN_LEG_M = 10.0
 WIND_MAX_M_S = 30.0
+# Slowest Dryden filter rate: ten samples per second resolve the spectra's corners (V / L < 1 Hz above 10 ft).
+TURBULENCE_RATE_MIN_HZ = 10.0
 # A sensor may not sample faster than the dynamics step; this tolerance absorbs 1/dt_s rounding.
 RATE_TOLERANCE = 1e-6
 # Nesting depth of ``extends`` chains (guards against cycles as well).
@@ -176,7 +178,9 @@ class WindConfig:
     Steady wind ``speed_m_s`` at ``ref_height_m`` above ground, blowing *from* ``from_deg`` (clockwise from north).
     ``shear``: the speed follows a logarithmic profile with surface roughness ``roughness_m`` (otherwise it is the
     same at every height).  ``turbulence``: Dryden turbulence (JSBSim milspec) of ``turbulence_severity`` with its
-    intensities multiplied by ``turbulence_scale``.  ``gusts``: discrete (1 - cos) gusts of ``gust_amplitude_m_s``
+    intensities multiplied by ``turbulence_scale``; its shaping filters are advanced at ``turbulence_rate_hz``
+    (the default, the default dynamics rate, steps them at every dynamics step; a lower rate interpolates between
+    filter samples, see :mod:`sim.wind`).  ``gusts``: discrete (1 - cos) gusts of ``gust_amplitude_m_s``
     peak and ``gust_length_m`` length, starting at exponentially distributed intervals of mean ``gust_interval_s``.
     """
 
@@ -188,6 +192,7 @@ class WindConfig:
     turbulence: bool = False
     turbulence_severity: Literal["light", "moderate", "severe"] = "light"
     turbulence_scale: float = 1.0
+    turbulence_rate_hz: float = 240.0
     gusts: bool = False
     gust_amplitude_m_s: float = 2.0
     gust_length_m: float = 100.0
@@ -200,6 +205,7 @@ class WindConfig:
         in_range(self.roughness_m, 1e-4, 3.0, "roughness_m")
         require(self.roughness_m < self.ref_height_m, "roughness_m", "must be below ref_height_m")
         in_range(self.turbulence_scale, 0.0, 5.0, "turbulence_scale")
+        in_range(self.turbulence_rate_hz, TURBULENCE_RATE_MIN_HZ, 1.0 / DT_MIN_S, "turbulence_rate_hz")
         in_range(self.gust_amplitude_m_s, 0.0, 20.0, "gust_amplitude_m_s")
         in_range(self.gust_length_m, 1.0, 2_000.0, "gust_length_m")
         in_range(self.gust_interval_s, 1.0, 1e5, "gust_interval_s")

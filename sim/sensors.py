@@ -11,7 +11,10 @@ them together: call :meth:`SensorSuite.step` once per dynamics step.  Samples ca
 simulation clock (the stamp the sensor reports, which for the AHRS and the camera differs from the time the
 measured quantity belongs to).  Frames and units as in :mod:`gsoe`.
 
-Cost: noise is drawn in blocks (:class:`_NormalBlocks`), so a sample costs a few microseconds.
+Cost: noise is drawn in blocks (:class:`_NormalBlocks`; the IMU's whole error path, bias walk plus white noise,
+:data:`NOISE_BLOCK_ROWS` samples at a time), so a sample costs a few microseconds; the per-step path
+(:meth:`SensorSuite.step`, :meth:`Imu.sample`) works on Python floats and builds each output array once.  The
+draws and their order do not depend on this: a seed gives the same samples as drawing one sample at a time.
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -46,24 +50,24 @@ NOISE_BLOCK_ROWS = 2048
 
 class _NormalBlocks:
     """Normal rows of fixed width with per-column std ``scale``, drawn from ``rng`` in blocks of
-    :data:`NOISE_BLOCK_ROWS` to keep the per-sample cost small."""
+    :data:`NOISE_BLOCK_ROWS` to keep the per-sample cost small; rows come as lists of Python floats."""
 
-    __slots__ = ("_rng", "_scale", "_block", "_i")
+    __slots__ = ("_rng", "_scale", "_rows", "_i")
 
     def __init__(self, rng: np.random.Generator, scale: NDArray[np.float64] | list[float]) -> None:
         self._rng = rng
         self._scale = np.asarray(scale, dtype=np.float64)
-        self._block = self._draw()
+        self._rows = self._draw()
         self._i = 0
 
-    def _draw(self) -> NDArray[np.float64]:
-        return self._rng.standard_normal((NOISE_BLOCK_ROWS, self._scale.size)) * self._scale
+    def _draw(self) -> list[list[float]]:
+        return (self._rng.standard_normal((NOISE_BLOCK_ROWS, self._scale.size)) * self._scale).tolist()
 
-    def next(self) -> NDArray[np.float64]:
+    def next(self) -> list[float]:
         if self._i >= NOISE_BLOCK_ROWS:
-            self._block = self._draw()
+            self._rows = self._draw()
             self._i = 0
-        row = self._block[self._i]
+        row = self._rows[self._i]
         self._i += 1
         return row
 
@@ -79,7 +83,7 @@ class _Schedule:
         self.last_s: float | None = None
 
     def due(self, t_s: float) -> bool:
-        return t_s >= self.next_s - SCHEDULE_TOLERANCE_S
+        return t_s + SCHEDULE_TOLERANCE_S >= self.next_s
 
     def advance(self, t_s: float) -> float:
         """Mark a sample taken at ``t_s``; returns the time since the previous sample (one period for the first)."""
@@ -196,9 +200,10 @@ class Imu:
         )
         self._gyro_scale = 1.0 + errors.gyro_scale
         self._accel_scale = 1.0 + errors.accel_scale
+        self._scale6 = tuple(self._gyro_scale.tolist() + self._accel_scale.tolist())
+        self._err_rows: list[list[float]] = []
         self._bias0 = np.concatenate([errors.gyro_bias_b_rad_s, errors.accel_bias_b_m_s2]).astype(np.float64)
         self._bias_path = np.empty((0, 6))
-        self._err = np.empty((0, 6))
         self._i = 0
         self._first_block = True
         self._refill()
@@ -213,7 +218,7 @@ class Imu:
         else:
             start = self._bias_path[-1]
         self._bias_path = start + np.cumsum(steps, axis=0)
-        self._err = self._bias_path + w[:, :6] * self._white_std
+        self._err_rows = (self._bias_path + w[:, :6] * self._white_std).tolist()
         self._i = 0
 
     @property
@@ -228,16 +233,18 @@ class Imu:
         return self._sched.due(t_s)
 
     def sample(self, truth: TruthState) -> ImuSample:
-        self._sched.advance(truth.t_s)
+        sched = self._sched  # _Schedule.advance, written out (the IMU samples at up to every dynamics step)
+        t_s = sched.last_s = truth.t_s
+        sched.next_s = (math.floor((t_s + SCHEDULE_TOLERANCE_S) / sched.period_s) + 1) * sched.period_s
         if self._i >= NOISE_BLOCK_ROWS:
             self._refill()
-        e = self._err[self._i]
+        e0, e1, e2, e3, e4, e5 = self._err_rows[self._i]
         self._i += 1
-        gyro = self._gyro_scale * truth.rates_b_rad_s
-        gyro += e[0:3]
-        accel = self._accel_scale * truth.accel_b_m_s2
-        accel += e[3:6]
-        return ImuSample(t_us=truth.t_us, gyro_b_rad_s=gyro, accel_b_m_s2=accel)
+        s0, s1, s2, s3, s4, s5 = self._scale6
+        p, q, r = truth.rates_b_rad_s.tolist()
+        ax, ay, az = truth.accel_b_m_s2.tolist()
+        return ImuSample(t_us=int(round(t_s * 1e6)), gyro_b_rad_s=np.array((s0 * p + e0, s1 * q + e1, s2 * r + e2)),
+                         accel_b_m_s2=np.array((s3 * ax + e3, s4 * ay + e4, s5 * az + e5)))
 
 
 class Ahrs:
@@ -252,7 +259,7 @@ class Ahrs:
         self.cfg = cfg
         self._sched = _Schedule(cfg.rate_hz)
         self._noise = _NormalBlocks(rng, [cfg.noise_rad] * 3)
-        self._bias = errors.ahrs_bias_rad.astype(np.float64).copy()
+        self._bias_f: tuple[float, float, float] = tuple(errors.ahrs_bias_rad.astype(np.float64).tolist())
         self._latency = cfg.latency_s
         self._hist: deque[tuple[float, float, float, float]] = deque()
 
@@ -290,12 +297,13 @@ class Ahrs:
         self.push(truth)
         self._sched.advance(truth.t_s)
         r, p, y = self._delayed(truth.t_s - self._latency)
-        e = self._bias + self._noise.next()
+        n0, n1, n2 = self._noise.next()
+        b0, b1, b2 = self._bias_f
         return AttitudeSample(
             t_us=truth.t_us,
-            roll_rad=float(wrap_pi(r + e[0])),
-            pitch_rad=p + float(e[1]),
-            yaw_rad=float(wrap_pi(y + e[2])),
+            roll_rad=float(wrap_pi(r + (b0 + n0))),
+            pitch_rad=p + (b1 + n1),
+            yaw_rad=float(wrap_pi(y + (b2 + n2))),
         )
 
 
@@ -313,7 +321,7 @@ class Airspeed:
 
     def sample(self, truth: TruthState) -> AirspeedSample:
         self._sched.advance(truth.t_s)
-        n = float(self._noise.next()[0])
+        n = self._noise.next()[0]
         return AirspeedSample(t_us=truth.t_us, tas_m_s=max(0.0, self._scale * truth.tas_m_s + n))
 
 
@@ -371,7 +379,7 @@ class Gnss:
 
     def sample(self, truth: TruthState) -> GnssSample:
         dt = self._sched.advance(truth.t_s)
-        w = self._noise.next()
+        w = np.array(self._noise.next())
         # The error process runs through outages too, so the draws do not depend on the outage windows.
         pos_err = self._step_pos_err(dt, w[0:3])
         if self.cfg.in_outage(truth.t_s):
@@ -412,9 +420,11 @@ class CameraClock:
 # Scheduler
 
 
-@dataclass(frozen=True, slots=True)
-class SensorReadings:
-    """What the sensors produced at one dynamics step (``None``: that sensor had no sample due)."""
+class SensorReadings(NamedTuple):
+    """What the sensors produced at one dynamics step (``None``: that sensor had no sample due).
+
+    A named tuple (immutable, built cheaply once per dynamics step; see :class:`sim.truth.TruthState`).
+    """
 
     imu: ImuSample | None
     ahrs: AttitudeSample | None
@@ -447,13 +457,16 @@ class SensorSuite:
         self.camera = CameraClock(camera, self.errors)
 
     def step(self, truth: TruthState) -> SensorReadings:
+        """The samples due at ``truth.t_s`` (each sensor's ``due`` test, written out here for speed)."""
         t = truth.t_s
-        self.ahrs.push(truth)
+        t_due = t + SCHEDULE_TOLERANCE_S
+        imu, ahrs, air, baro, gnss, cam = self.imu, self.ahrs, self.airspeed, self.baro, self.gnss, self.camera
+        ahrs.push(truth)
         return SensorReadings(
-            imu=self.imu.sample(truth) if self.imu.due(t) else None,
-            ahrs=self.ahrs.sample(truth) if self.ahrs.due(t) else None,
-            airspeed=self.airspeed.sample(truth) if self.airspeed.due(t) else None,
-            baro=self.baro.sample(truth) if self.baro.due(t) else None,
-            gnss=self.gnss.sample(truth) if self.gnss.due(t) else None,
-            frame=self.camera.frame(t) if self.camera.due(t) else None,
+            imu.sample(truth) if t_due >= imu._sched.next_s else None,
+            ahrs.sample(truth) if t_due >= ahrs._sched.next_s else None,
+            air.sample(truth) if t_due >= air._sched.next_s else None,
+            baro.sample(truth) if t_due >= baro._sched.next_s else None,
+            gnss.sample(truth) if t_due >= gnss._sched.next_s else None,
+            cam.frame(t) if t_due >= cam._sched.next_s else None,
         )

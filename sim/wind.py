@@ -27,6 +27,20 @@ turbulence
     discretised *exactly* for the white-noise input (the state covariance over one step is integrated in closed
     form), so the output variance is ``sigma^2`` at any step size and the states start from their stationary
     distribution (no warm-up).
+    Rate: a call whose ``dt_s`` is at least one period of ``turbulence_rate_hz`` advances the filters exactly by
+    ``dt_s`` (one row of draws per call).  The default, 240 Hz, is the default dynamics rate, so a default run
+    steps the filters at every dynamics step, as the model always did (same draws, same wind for a seed).  A lower
+    rate (e.g. 50 Hz: the wind then costs about a third as much per dynamics step) steps them once per period and
+    interpolates the wind linearly toward the next sample, computed one period ahead (no lag).  Why that keeps the
+    model: the Dryden spectra have their corners at ``V / L``, below 1 rad/s at the paper's 80-150 m and 7 rad/s
+    even at the model's floor of 10 ft, and fall as ``1 / f^2`` beyond: the share of the variance above ``f`` is
+    ``V / (pi^2 L f)`` (longitudinal; 1.5 times that for the others), about 0.1 % above 25 Hz at 100 m.  Gusts
+    shorter than the wing span (1.7 m: above ``V / b`` = 12 Hz at 20 m/s) are averaged over the wing in reality
+    (and a wing's lift builds up over a few chord lengths of travel), so a point-gust model's content there is an
+    artefact; it shows in the specific force.  Where ``L / V`` is short (low heights) the filter step shrinks to
+    ``L / V / TURB_SAMPLES_PER_TIME_SCALE``, which bounds the variance the interpolation removes (about
+    ``(1 - rho) / 3`` of it on average over a step, ``rho = exp(-1 / 50)``: under 1 %).  At the filter's sample
+    instants the output is the exact discretisation.
 gusts
     1-cosine discrete gusts ``v(t) = A / 2 (1 - cos(2 pi t / T))`` over ``T = 2 gust_length_m / V`` (the gust
     reaches its peak ``A = gust_amplitude_m_s`` after ``gust_length_m`` of flight), in a direction drawn
@@ -54,10 +68,15 @@ TURB_AIRSPEED_MIN_M_S: Final = 1.0
 """Airspeed below which the filters use this value (Taylor's hypothesis is meaningless at rest)."""
 LIGHT_W20_M_S: Final = 15.0 * 0.514444
 """MIL-F-8785C wind speed at 20 ft for light turbulence (15 kt); moderate is 30 kt, severe 45 kt."""
+TURB_SAMPLES_PER_TIME_SCALE: Final = 50.0
+"""Least number of turbulence filter samples per Dryden time scale ``L / V`` (bounds the interpolation's loss)."""
+TURB_TIME_TOLERANCE_S: Final = 1e-9
+"""Clock tolerance of the turbulence filter's sample schedule (absorbs the rounding of a clock summed from steps)."""
 _SQRT3: Final = math.sqrt(3.0)
 _NOISE_BLOCK: Final = 4096
 _SERIES_X_MAX: Final = 1e-2
-"""Below it the series (error < x^5 / 840) replaces the closed forms, whose cancellation error is ~1e-16 / x^3."""
+"""Below it the series (error < x^5 / 840) replaces the closed forms of the second-order filter's noise integrals,
+whose cancellation error is ~1e-16 / x^3."""
 
 
 @dataclass(frozen=True)
@@ -72,6 +91,7 @@ class WindParams:
     turbulence: bool = False
     turbulence_w20_m_s: float = LIGHT_W20_M_S
     turbulence_scale: float = 1.0
+    turbulence_rate_hz: float = 240.0
     gusts: bool = False
     gust_amplitude_m_s: float = 3.0
     gust_length_m: float = 30.0
@@ -87,6 +107,7 @@ class WindParams:
                 f"must be above roughness_m ({self.roughness_m} m), got {self.ref_height_m}")
         in_range(self.turbulence_w20_m_s, 0.0, 60.0, "turbulence_w20_m_s")
         in_range(self.turbulence_scale, 0.0, 10.0, "turbulence_scale")
+        in_range(self.turbulence_rate_hz, 1.0, 10000.0, "turbulence_rate_hz")
         in_range(self.gust_amplitude_m_s, 0.0, 40.0, "gust_amplitude_m_s")
         in_range(self.gust_length_m, 1.0, 2000.0, "gust_length_m")
         in_range(self.gust_rate_hz, 0.0, 1.0, "gust_rate_hz")
@@ -104,69 +125,64 @@ class WindSample:
     gust_ned_m_s: NDArray[np.float64]
 
 
-def _f1(x: float) -> float:
-    """int_0^1 u exp(-x u) du: a short series for small x (the closed form cancels), else the closed form."""
-    if x < _SERIES_X_MAX:
-        return 0.5 - x * (1.0 / 3.0 - x * (1.0 / 8.0 - x * (1.0 / 30.0 - x / 144.0)))
-    return (1.0 - math.exp(-x) * (1.0 + x)) / (x * x)
+def _second_order_step(x1: float, x2: float, y: float, e: float, em1: float, xi1: float, xi2: float
+                       ) -> tuple[float, float]:
+    """One exact step of the states of ``(1 + sqrt(3) tau s) / (1 + tau s)^2`` (see :class:`_DrydenFilters`) by
+    ``y = dt / tau > 0``, given ``e = exp(-y)``, ``em1 = expm1(-2 y)`` and two standard normal draws."""
+    q11 = -0.5 * em1
+    x = 2.0 * y
+    if x < _SERIES_X_MAX:  # error < x^5 / 840
+        f1 = 0.5 - x * (1.0 / 3.0 - x * (1.0 / 8.0 - x * (1.0 / 30.0 - x / 144.0)))
+        f2 = 1.0 / 3.0 - x * (0.25 - x * (0.1 - x * (1.0 / 36.0 - x / 168.0)))
+    else:
+        ex = math.exp(-x)
+        f1 = (1.0 - ex * (1.0 + x)) / (x * x)
+        f2 = (2.0 - ex * (x * x + 2.0 * x + 2.0)) / (x * x * x)
+    q12 = y * y * f1
+    q22 = y * y * y * f2
+    l11 = math.sqrt(q11)
+    l21 = q12 / l11
+    l22 = math.sqrt(max(q22 - l21 * l21, 0.0))
+    return e * x1 + l11 * xi1, e * (y * x1 + x2) + l21 * xi1 + l22 * xi2
 
 
-def _f2(x: float) -> float:
-    """int_0^1 u^2 exp(-x u) du: a short series for small x (the closed form cancels), else the closed form."""
-    if x < _SERIES_X_MAX:
-        return 1.0 / 3.0 - x * (0.25 - x * (0.1 - x * (1.0 / 36.0 - x / 168.0)))
-    return (2.0 - math.exp(-x) * (x * x + 2.0 * x + 2.0)) / (x * x * x)
+class _DrydenFilters:
+    """Unit-variance states of the three Dryden shaping filters, exactly discretised for their white-noise input.
 
-
-class _FirstOrder:
-    """Unit-variance first-order Gauss-Markov state (Dryden longitudinal shape), exactly discretised."""
-
-    __slots__ = ("x",)
-
-    def __init__(self, xi: float) -> None:
-        self.x = xi
-
-    def output(self) -> float:
-        return self.x
-
-    def step(self, y: float, xi: float) -> float:
-        """Advance by ``y = dt / tau > 0`` with the standard normal draw ``xi``; returns the unit-variance output."""
-        phi = math.exp(-y)
-        self.x = phi * self.x + math.sqrt(-math.expm1(-2.0 * y)) * xi
-        return self.x
-
-
-class _SecondOrder:
-    """Unit-variance output of ``(1 + sqrt(3) tau s) / (1 + tau s)^2`` driven by white noise of intensity ``tau``.
-
-    States ``tau x1' = -x1 + n``, ``tau x2' = x1 - x2``; output ``sqrt(3) x1 + (1 - sqrt(3)) x2``.  The stationary
-    covariance of (x1, x2) is [[1/2, 1/4], [1/4, 1/4]] whatever tau, so a changing tau keeps the variance.
+    Longitudinal: first-order Gauss-Markov ``u``.  Lateral and vertical: ``(1 + sqrt(3) tau s) / (1 + tau s)^2``
+    driven by white noise of intensity ``tau``, states ``tau x1' = -x1 + n``, ``tau x2' = x1 - x2``, output
+    ``sqrt(3) x1 + (1 - sqrt(3)) x2``; their stationary covariance is [[1/2, 1/4], [1/4, 1/4]] whatever tau, so a
+    changing tau keeps the variance.  The covariance of one step's noise is ``q11 = (1 - exp(-2y)) / 2``,
+    ``q12 = y^2 f1(2y)``, ``q22 = y^3 f2(2y)`` with ``f1(x) = int_0^1 u exp(-x u) du`` and
+    ``f2(x) = int_0^1 u^2 exp(-x u) du``; below :data:`_SERIES_X_MAX` short series replace their closed forms,
+    which cancel.
     """
 
-    __slots__ = ("x1", "x2")
+    __slots__ = ("u", "v1", "v2", "w1", "w2")
 
-    def __init__(self, xi1: float, xi2: float) -> None:
-        # stationary covariance [[1/2, 1/4], [1/4, 1/4]]: Cholesky [[sqrt(1/2), 0], [sqrt(1/8), sqrt(1/8)]]
-        self.x1 = math.sqrt(0.5) * xi1
-        self.x2 = math.sqrt(0.125) * (xi1 + xi2)
+    def __init__(self, xi: list[float]) -> None:
+        """Stationary start from five standard normal draws (second order: Cholesky factor of the covariance,
+        [[sqrt(1/2), 0], [sqrt(1/8), sqrt(1/8)]])."""
+        self.u = xi[0]
+        self.v1 = math.sqrt(0.5) * xi[1]
+        self.v2 = math.sqrt(0.125) * (xi[1] + xi[2])
+        self.w1 = math.sqrt(0.5) * xi[3]
+        self.w2 = math.sqrt(0.125) * (xi[3] + xi[4])
 
-    def output(self) -> float:
-        return _SQRT3 * self.x1 + (1.0 - _SQRT3) * self.x2
+    def outputs(self) -> tuple[float, float, float]:
+        """Unit-variance longitudinal, lateral and vertical outputs."""
+        return self.u, _SQRT3 * self.v1 + (1.0 - _SQRT3) * self.v2, _SQRT3 * self.w1 + (1.0 - _SQRT3) * self.w2
 
-    def step(self, y: float, xi1: float, xi2: float) -> float:
-        """Advance by ``y = dt / tau > 0`` with standard normal draws; returns the unit-variance output."""
-        e = math.exp(-y)
-        x1 = e * self.x1
-        x2 = e * (y * self.x1 + self.x2)
-        q11 = -0.5 * math.expm1(-2.0 * y)
-        q12 = y * y * _f1(2.0 * y)
-        q22 = y * y * y * _f2(2.0 * y)
-        l11 = math.sqrt(q11)
-        l21 = q12 / l11
-        l22 = math.sqrt(max(q22 - l21 * l21, 0.0))
-        self.x1 = x1 + l11 * xi1
-        self.x2 = x2 + l21 * xi1 + l22 * xi2
-        return _SQRT3 * self.x1 + (1.0 - _SQRT3) * self.x2
+    def step(self, y_uv: float, y_w: float, xi: list[float]) -> tuple[float, float, float]:
+        """Advance by ``y = dt / tau > 0`` (``y_uv`` longitudinal and lateral, ``y_w`` vertical) with five standard
+        normal draws; returns :meth:`outputs`."""
+        e = math.exp(-y_uv)
+        em1 = math.expm1(-2.0 * y_uv)
+        self.u = e * self.u + math.sqrt(-em1) * xi[0]
+        self.v1, self.v2 = _second_order_step(self.v1, self.v2, y_uv, e, em1, xi[1], xi[2])
+        self.w1, self.w2 = _second_order_step(self.w1, self.w2, y_w, math.exp(-y_w), math.expm1(-2.0 * y_w), xi[3],
+                                              xi[4])
+        return self.u, _SQRT3 * self.v1 + (1.0 - _SQRT3) * self.v2, _SQRT3 * self.w1 + (1.0 - _SQRT3) * self.w2
 
 
 @dataclass(frozen=True, slots=True)
@@ -188,10 +204,14 @@ def dryden_sigmas_scales(height_m: float, w20_m_s: float) -> tuple[float, float,
 
 
 class WindField:
-    """The wind the aircraft flies in; call :meth:`update` once per dynamics step.
+    """The wind the aircraft flies in; call :meth:`update` (or its lean form :meth:`advance`) once per dynamics step.
 
     ``rng`` drives the turbulence and the random gusts; the same seed and the same sequence of calls give the
-    same wind.
+    same wind.  The turbulence runs on the clock summed from the ``dt_s`` of the calls.  A call of at least one
+    filter period (``1 / turbulence_rate_hz``) steps the filters by its ``dt_s``; shorter calls step them (one
+    row of normal draws) when that clock passes their latest sample, to the next sample a filter period ahead, and
+    interpolate in between (see the module docstring).  The intensities ``sigma`` are evaluated when the filters
+    step, at the height of that call.
     """
 
     def __init__(self, params: WindParams, rng: np.random.Generator) -> None:
@@ -205,23 +225,32 @@ class WindField:
         self._to_n = math.cos(to_rad)
         self._to_e = math.sin(to_rad)
         self._log_ref = math.log(params.ref_height_m / params.roughness_m)
+        self._turb_period_s = 1.0 / params.turbulence_rate_hz
+        self._w20 = params.turbulence_w20_m_s * params.turbulence_scale
         self.reset()
 
     def reset(self) -> None:
         """Restart at ``t = 0``: turbulence states drawn from their stationary distribution, gusts rescheduled."""
-        self._noise = self._rng.standard_normal((_NOISE_BLOCK, 5))
+        self._noise: list[list[float]] = self._rng.standard_normal((_NOISE_BLOCK, 5)).tolist()
         self._k = 0
         xi = self._draw()
-        self._u = _FirstOrder(xi[0])
-        self._v = _SecondOrder(xi[1], xi[2])
-        self._w = _SecondOrder(xi[3], xi[4])
+        self._filters = _DrydenFilters(xi)
+        # The turbulence clock, the unit-variance filter outputs at the last two filter samples (t_a <= t_b), and
+        # the turbulence (NED, m/s) at t_a with its rate of change toward t_b (the linear interpolation).
+        self._t = 0.0
+        self._ta = self._tb = 0.0
+        self._out_a = self._out_b = self._filters.outputs()
+        self._sig_uv = self._sig_w = math.nan  # set at the first call
+        self._turb_a = (0.0, 0.0, 0.0)
+        self._turb_rate = (0.0, 0.0, 0.0)
+        self._last_parts = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
         self._gusts: list[_Gust] = []
         self._scheduled = sorted(self.params.gust_times_s)
         self._next_random_s = self._draw_gap() if self.params.gusts else math.inf
 
-    def _draw(self) -> NDArray[np.float64]:
+    def _draw(self) -> list[float]:
         if self._k >= _NOISE_BLOCK:
-            self._noise = self._rng.standard_normal((_NOISE_BLOCK, 5))
+            self._noise = self._rng.standard_normal((_NOISE_BLOCK, 5)).tolist()
             self._k = 0
         row = self._noise[self._k]
         self._k += 1
@@ -259,6 +288,8 @@ class WindField:
         while self._next_random_s <= t_s:
             self._start_gust(self._next_random_s, airspeed_m_s)
             self._next_random_s += self._draw_gap()
+        if not self._gusts:
+            return 0.0, 0.0, 0.0
         gn = ge = gd = 0.0
         alive = []
         for g in self._gusts:
@@ -273,38 +304,96 @@ class WindField:
         self._gusts = alive
         return gn, ge, gd
 
+    def _turbulence_step(self, height_m: float, airspeed_m_s: float) -> None:
+        """Intensities at ``height_m``; when the clock has passed the latest filter sample, the next sample; then
+        the turbulence at ``t_a`` and its rate toward ``t_b`` in NED."""
+        v = max(airspeed_m_s, TURB_AIRSPEED_MIN_M_S)
+        sig_uv, sig_w, l_uv, l_w = dryden_sigmas_scales(height_m, self._w20)
+        self._sig_uv, self._sig_w = sig_uv, sig_w
+        if self._t > self._tb + TURB_TIME_TOLERANCE_S:
+            period = min(self._turb_period_s, min(l_uv, l_w) / (v * TURB_SAMPLES_PER_TIME_SCALE))
+            h = max(period, self._t - self._tb)
+            xi = self._draw()
+            out = self._filters.step(h * v / l_uv, h * v / l_w, xi)
+            self._ta, self._out_a = self._tb, self._out_b
+            self._tb += h
+            self._out_b = out
+        ua, va, wa = self._out_a
+        ub, vb, wb = self._out_b
+        tn_a, te_a = self._rotate(sig_uv * ua, sig_uv * va)
+        tn_b, te_b = self._rotate(sig_uv * ub, sig_uv * vb)
+        span = self._tb - self._ta
+        self._turb_a = (tn_a, te_a, sig_w * wa)
+        self._turb_rate = ((tn_b - tn_a) / span, (te_b - te_a) / span, sig_w * (wb - wa) / span) if span > 0.0 \
+            else (0.0, 0.0, 0.0)
+
+    def _turbulence_exact(self, dt_s: float, height_m: float, airspeed_m_s: float) -> tuple[float, float, float]:
+        """The filters advanced by ``dt_s`` at once (no interpolation): the turbulence (NED, m/s) at the clock."""
+        v = max(airspeed_m_s, TURB_AIRSPEED_MIN_M_S)
+        sig_uv, sig_w, l_uv, l_w = dryden_sigmas_scales(height_m, self._w20)
+        xi = self._draw()
+        out = self._filters.step(dt_s * v / l_uv, dt_s * v / l_w, xi)
+        u = sig_uv * out[0]
+        lat = sig_uv * out[1]
+        tn, te, td = u * self._to_n - lat * self._to_e, u * self._to_e + lat * self._to_n, sig_w * out[2]
+        # the interpolation restarts from this sample (for later calls with steps shorter than a filter period)
+        self._ta = self._tb = self._t
+        self._out_a = self._out_b = out
+        self._sig_uv, self._sig_w = sig_uv, sig_w
+        self._turb_a, self._turb_rate = (tn, te, td), (0.0, 0.0, 0.0)
+        return tn, te, td
+
+    def _rotate(self, along_m_s: float, lateral_m_s: float) -> tuple[float, float]:
+        """North and east of a (longitudinal, lateral) turbulence pair: along the mean wind, and 90 deg clockwise."""
+        return along_m_s * self._to_n - lateral_m_s * self._to_e, along_m_s * self._to_e + lateral_m_s * self._to_n
+
+    def advance(self, t_s: float, dt_s: float, height_m: float, airspeed_m_s: float
+                ) -> tuple[float, float, float, float, float]:
+        """:meth:`update` without building arrays: ``(total_n, total_e, total_d, steady_n, steady_e)`` (m/s).
+
+        The turbulence and gust parts of the call are kept for :meth:`update`.  Same checks as :meth:`update`.
+        """
+        if not math.isfinite(t_s + dt_s + height_m + airspeed_m_s):  # a sum is finite only if every term is
+            raise ValueError(f"wind update needs finite inputs, got t_s={t_s}, dt_s={dt_s}, height_m={height_m}, "
+                             f"airspeed_m_s={airspeed_m_s}")
+        if dt_s < 0.0:
+            raise ValueError(f"dt_s must be >= 0, got {dt_s}")
+        p = self.params
+        if p.shear:  # steady_speed_m_s, written out
+            s = p.speed_m_s * max(math.log(max(height_m, p.roughness_m) / p.roughness_m), 0.0) / self._log_ref
+        else:
+            s = p.speed_m_s
+        sn, se = s * self._to_n, s * self._to_e
+        tn = te = td = 0.0
+        if p.turbulence:
+            t = self._t = self._t + dt_s
+            if dt_s >= self._turb_period_s - TURB_TIME_TOLERANCE_S:  # a whole filter period or more: exact step
+                tn, te, td = self._turbulence_exact(dt_s, height_m, airspeed_m_s)
+            else:
+                if t > self._tb + TURB_TIME_TOLERANCE_S or self._sig_uv != self._sig_uv:  # passed, or NaN: unset
+                    self._turbulence_step(height_m, airspeed_m_s)
+                tau = t - self._ta  # in [0, t_b - t_a]
+                (tn, te, td), (rn, re, rd) = self._turb_a, self._turb_rate
+                tn += tau * rn
+                te += tau * re
+                td += tau * rd
+        if p.gusts and (self._gusts or t_s >= self._next_random_s or (self._scheduled and self._scheduled[0] <= t_s)):
+            gn, ge, gd = self._gust_at(t_s, airspeed_m_s)
+            self._last_parts = (tn, te, td, gn, ge, gd)
+            return sn + tn + gn, se + te + ge, td + gd, sn, se
+        self._last_parts = (tn, te, td, 0.0, 0.0, 0.0)  # no gust alive and none starting
+        return sn + tn, se + te, td, sn, se
+
     def update(self, t_s: float, dt_s: float, height_m: float, airspeed_m_s: float) -> WindSample:
         """Advance the turbulence by ``dt_s`` and return the wind at time ``t_s`` and height ``height_m`` (AGL).
 
         ``airspeed_m_s`` is the aircraft's true airspeed (it sets the time scales of the frozen turbulence and the
         duration of new gusts).  Non-finite inputs raise ``ValueError``.
         """
-        if not (math.isfinite(t_s) and math.isfinite(dt_s) and math.isfinite(height_m)
-                and math.isfinite(airspeed_m_s)):
-            raise ValueError(f"wind update needs finite inputs, got t_s={t_s}, dt_s={dt_s}, height_m={height_m}, "
-                             f"airspeed_m_s={airspeed_m_s}")
-        if dt_s < 0.0:
-            raise ValueError(f"dt_s must be >= 0, got {dt_s}")
-        p = self.params
-        s = self.steady_speed_m_s(height_m)
-        sn, se = s * self._to_n, s * self._to_e
-        tn = te = td = 0.0
-        if p.turbulence:
-            v = max(airspeed_m_s, TURB_AIRSPEED_MIN_M_S)
-            sig_uv, sig_w, l_uv, l_w = dryden_sigmas_scales(height_m, p.turbulence_w20_m_s * p.turbulence_scale)
-            if dt_s > 0.0:
-                xi = self._draw()
-                y_uv = dt_s * v / l_uv
-                u = sig_uv * self._u.step(y_uv, xi[0])
-                lat = sig_uv * self._v.step(y_uv, xi[1], xi[2])
-                td = sig_w * self._w.step(dt_s * v / l_w, xi[3], xi[4])
-            else:
-                u, lat, td = sig_uv * self._u.output(), sig_uv * self._v.output(), sig_w * self._w.output()
-            tn = u * self._to_n - lat * self._to_e
-            te = u * self._to_e + lat * self._to_n
-        gn, ge, gd = self._gust_at(t_s, airspeed_m_s)
+        wn, we, wd, sn, se = self.advance(t_s, dt_s, height_m, airspeed_m_s)
+        tn, te, td, gn, ge, gd = self._last_parts
         return WindSample(
-            total_ned_m_s=np.array([sn + tn + gn, se + te + ge, td + gd]),
+            total_ned_m_s=np.array([wn, we, wd]),
             steady_ned_m_s=np.array([sn, se, 0.0]),
             turbulence_ned_m_s=np.array([tn, te, td]),
             gust_ned_m_s=np.array([gn, ge, gd]),

@@ -78,6 +78,9 @@ class TruthConfig:
     optical_rot_deg: float = 0.0    # the optical frame's own heading error (the optical estimator's gyro bias)
     att_rel_noise_deg: float = 0.03
     psr: float = 15.0
+    # the AHRS heading reports the heading of ``t - ahrs_yaw_latency_s`` (roll and pitch on time: this truth's roll
+    # steps at turn entries are not the integral of its gyro, so only the heading, which is, is delayed)
+    ahrs_yaw_latency_s: float = 0.0
     seed: int = 0
 
 
@@ -146,11 +149,12 @@ def make_flight(cfg: TruthConfig) -> Flight:
     rp_bias = np.radians(rng.normal(0.0, cfg.ahrs_rp_bias_std_deg, 2))
     yb = math.radians(cfg.ahrs_yaw_bias_deg)
     an = math.radians(cfg.ahrs_noise_deg)
+    lag = int(round(cfg.ahrs_yaw_latency_s * cfg.grid_hz))
     for k in range(0, n, cfg.ahrs_div):
         e = rng.normal(0.0, an, 3)
         ev.append((int(t_us[k]), 0, "att", AttitudeSample(int(t_us[k]), float(roll[k] + rp_bias[0] + e[0]),
                                                            float(pitch[k] + rp_bias[1] + e[1]),
-                                                           float(psi[k] + yb + e[2]))))
+                                                           float(psi[max(k - lag, 0)] + yb + e[2]))))
     for k in range(cfg.imu_div, n, cfg.imu_div):
         ev.append((int(t_us[k]), 1, "imu", ImuSample(int(t_us[k]), gyro_b[k].copy(),
                                                      f_b[k] + ba + rng.normal(0.0, cfg.accel_noise_m_s2, 3))))

@@ -89,7 +89,7 @@ def test_positive_commands_give_positive_body_rates(axis: int) -> None:
     trim = fd.trim(0.0, 0.0, HEIGHT_M, AIRSPEED_M_S, 0.0)
     surfaces = [trim.aileron_norm, trim.elevator_norm, trim.rudder_norm]
     surfaces[axis] += 0.2
-    cmd = ControlCommand(*surfaces, trim.throttle_norm)
+    cmd = ControlCommand(surfaces[0], surfaces[1], surfaces[2], trim.throttle_norm)
     for _ in range(48):  # 0.2 s
         t = fd.step(cmd)
     rates = t.rates_b_rad_s
@@ -154,8 +154,8 @@ def test_true_drift_equals_wind_triangle() -> None:
         gn = t.tas_m_s * math.cos(air_dir) + t.wind_steady_ned_m_s[0]
         ge = t.tas_m_s * math.sin(air_dir) + t.wind_steady_ned_m_s[1]
         drift_triangle = angle_diff(math.atan2(ge, gn), t.yaw_rad)
-        errs.append(angle_diff(drift, drift_triangle))
-        drifts.append(drift)
+        errs.append(float(angle_diff(drift, drift_triangle)))
+        drifts.append(float(drift))
     assert min(abs(d) for d in drifts) > math.radians(5.0)  # a real crosswind, so the check can fail
     assert max(abs(e) for e in errs) < math.radians(0.1)
     # the truth's steady wind is the sheared wind at the aircraft's height, blowing from 60 deg
@@ -186,6 +186,83 @@ def test_square_mission_with_45_degree_turns() -> None:
     assert h.max() < 124.0
     tas = fl.arr(lambda t: t.tas_m_s)
     assert np.abs(tas - 22.0).min() < 0.5
+
+
+def test_autopilot_loops_run_at_their_rates_and_hold_their_outputs() -> None:
+    dt, seconds = 1.0 / 240.0, 10.0
+    ap = Autopilot(AutopilotGains(guidance_rate_hz=20.0, attitude_rate_hz=60.0))
+    ap.set_heading_command(0.5, HEIGHT_M, AIRSPEED_M_S)
+    z3 = np.zeros(3)
+    cmds, roll_cmds = [], []
+    for k in range(int(round(seconds / dt))):
+        # a truth that changes every step (yaw and roll rate), so every guidance run gives a new roll command
+        truth = TruthState(t_s=k * dt, pos_ned_m=np.array([20.0 * k * dt, 0.0, -HEIGHT_M]),
+                           vel_ned_m_s=np.array([20.0, 0.0, 0.0]), roll_rad=0.0, pitch_rad=0.03,
+                           yaw_rad=0.4 + 1e-4 * k, rates_b_rad_s=np.array([0.01 * math.sin(k), 0.0, 0.0]),
+                           accel_b_m_s2=z3, tas_m_s=AIRSPEED_M_S, alpha_rad=0.03, beta_rad=0.0, wind_ned_m_s=z3,
+                           wind_steady_ned_m_s=z3, height_agl_m=HEIGHT_M)
+        cmds.append(ap.update(truth, dt))
+        roll_cmds.append(ap.roll_cmd_rad)
+    # a new command object each time the attitude loops run, the same object in between (zero-order hold)
+    new_cmd = sum(1 for a, b in zip([None, *cmds[:-1]], cmds, strict=True) if a is not b)
+    assert new_cmd == int(60.0 * seconds)
+    new_roll = sum(1 for a, b in zip([None, *roll_cmds[:-1]], roll_cmds, strict=True) if a != b)
+    assert new_roll == int(20.0 * seconds)
+    assert len({id(c) for c in cmds}) == new_cmd
+
+
+def test_multi_rate_autopilot_flies_the_mission_of_an_every_step_autopilot() -> None:
+    """The default loop rates (50 Hz) against loops run at every dynamics step (240 Hz): same 2.4 km mission."""
+    wps = [Waypoint(300.0, 100.0, HEIGHT_M, AIRSPEED_M_S), Waypoint(300.0, 500.0, 120.0, 22.0),
+           Waypoint(-100.0, 500.0, 120.0, 22.0), Waypoint(-100.0, 100.0, HEIGHT_M, AIRSPEED_M_S)]
+    wind = WindParams(speed_m_s=5.0, from_rad=math.radians(45.0))
+    every_step = 1.0 / DynamicsParams().dt_s
+    flights = []
+    for gains in (AutopilotGains(), AutopilotGains(guidance_rate_hz=every_step, attitude_rate_hz=every_step)):
+        fd = FlightDynamics(DynamicsParams(), wind, np.random.default_rng(1))
+        ap = Autopilot(gains, fd.trim(0.0, 0.0, HEIGHT_M, AIRSPEED_M_S, 0.0))
+        ap.set_mission(wps)
+        truth, pos = fd.truth(), []
+        for _ in range(int(round(120.0 / fd.dt_s))):
+            truth = fd.step(ap.update(truth, fd.dt_s))
+            pos.append(truth.pos_ned_m)
+        flights.append((ap.waypoints_reached, np.array(pos)))
+    (reached_a, pos_a), (reached_b, pos_b) = flights
+    assert AutopilotGains().attitude_rate_hz < every_step / 4  # the comparison is between different rates
+    assert reached_a == reached_b >= 5
+    assert np.hypot(*(pos_a[:, :2] - pos_b[:, :2]).T).max() < 2.0
+    assert np.abs(pos_a[:, 2] - pos_b[:, 2]).max() < 0.5
+
+
+def test_truth_fields_are_jsbsim_state() -> None:
+    fd = FlightDynamics(DynamicsParams(), WindParams(speed_m_s=5.0, from_rad=1.0, turbulence=True),
+                        np.random.default_rng(4))
+    cmd = fd.trim(100.0, -50.0, HEIGHT_M, AIRSPEED_M_S, 0.5)
+    roll_in = ControlCommand(cmd.aileron_norm + 0.05, cmd.elevator_norm, cmd.rudder_norm, cmd.throttle_norm)
+    truths = [fd.step(roll_in) for _ in range(121)]
+    prev, t = truths[-2], truths[-1]
+    fdm, ft = fd._fdm, 0.3048
+    assert t.t_s == pytest.approx(121 * fd.dt_s)
+    np.testing.assert_allclose(t.rates_b_rad_s, [fdm["velocities/p-rad_sec"], fdm["velocities/q-rad_sec"],
+                                                 fdm["velocities/r-rad_sec"]], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(t.accel_b_m_s2, [fdm[f"accelerations/a-pilot-{a}-ft_sec2"] * ft for a in "xyz"],
+                               rtol=1e-15)
+    np.testing.assert_allclose(t.vel_ned_m_s, [fdm[f"velocities/v-{a}-fps"] * ft for a in ("north", "east", "down")],
+                               rtol=1e-15)
+    assert (t.roll_rad, t.pitch_rad) == (fdm["attitude/phi-rad"], fdm["attitude/theta-rad"])
+    assert t.yaw_rad == pytest.approx(float(angle_diff(fdm["attitude/psi-rad"], 0.0)), abs=1e-15)
+    assert t.height_agl_m == pytest.approx(fdm["position/h-agl-ft"] * ft, rel=1e-15) == -t.pos_ned_m[2]
+    wind_jsbsim = [fdm[f"atmosphere/wind-{a}-fps"] * ft for a in ("north", "east", "down")]
+    np.testing.assert_allclose(t.wind_ned_m_s, wind_jsbsim, rtol=1e-12)
+    assert t.tas_m_s == pytest.approx(float(np.linalg.norm(t.vel_ned_m_s - t.wind_ned_m_s)), rel=1e-12)
+    assert np.linalg.norm(t.wind_ned_m_s - t.wind_steady_ned_m_s) > 0.0  # turbulence on top of the steady wind
+    # the position is the integral of the velocity: over the last step (5.7 cm) within JSBSim's integration scheme
+    np.testing.assert_allclose(t.pos_ned_m - prev.pos_ned_m, 0.5 * (t.vel_ned_m_s + prev.vel_ned_m_s) * fd.dt_s,
+                               rtol=0.0, atol=5e-5)
+    # immutable
+    with pytest.raises(AttributeError):
+        t.tas_m_s = 1.0  # type: ignore[misc]
+    assert t._replace(t_s=1.0).t_s == 1.0 and t.t_s != 1.0
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -233,6 +310,34 @@ def test_turbulence_variance_does_not_depend_on_step() -> None:
         wf = WindField(p, np.random.default_rng(5))
         w = np.array([wf.update(i * dt, dt, 3.0, 25.0).turbulence_ned_m_s[2] for i in range(1, 40_001)])
         assert w.std() == pytest.approx(1.0, rel=0.1)
+
+
+def test_lower_turbulence_filter_rate_interpolates_between_exact_samples() -> None:
+    """At ``turbulence_rate_hz`` the filters step once per period; the wind in between is the straight line between
+    the two samples, which are the exact discretisation (the same as stepping the filters by the period)."""
+    p = WindParams(turbulence=True, turbulence_w20_m_s=10.0, turbulence_rate_hz=50.0)
+    h, v = 60.0, 20.0
+    fine, coarse = WindField(p, np.random.default_rng(8)), WindField(p, np.random.default_rng(8))
+    w0 = fine.update(0.0, 0.0, h, v).turbulence_ned_m_s
+    np.testing.assert_array_equal(coarse.update(0.0, 0.0, h, v).turbulence_ned_m_s, w0)
+    a = np.array([fine.update(k * 0.004, 0.004, h, v).turbulence_ned_m_s for k in range(1, 501)])  # 5 per period
+    b = np.array([w0] + [coarse.update(k * 0.02, 0.02, h, v).turbulence_ned_m_s for k in range(1, 101)])
+    frac = np.arange(1, 6)[:, None] / 5.0
+    expected = np.concatenate([b[m] + frac * (b[m + 1] - b[m]) for m in range(100)])
+    np.testing.assert_allclose(a, expected, rtol=0.0, atol=1e-12)
+    assert np.abs(np.diff(b, axis=0)).max() > 0.01  # the samples do move
+
+
+def test_turbulence_statistics_at_a_lower_filter_rate() -> None:
+    p = WindParams(turbulence=True, turbulence_w20_m_s=10.0, turbulence_rate_hz=50.0)
+    h, v, dt, n = 10.0, 20.0, 1.0 / 240.0, 240 * 2400
+    wf = WindField(p, np.random.default_rng(21))
+    w = np.array([wf.advance(i * dt, dt, h, v)[:3] for i in range(1, n + 1)])  # no steady wind: all turbulence
+    sig_uv, sig_w, l_uv, _ = dryden_sigmas_scales(h, 10.0)
+    np.testing.assert_allclose(w.std(axis=0), [sig_uv, sig_uv, sig_w], rtol=0.1)
+    u = w[:, 0] - w[:, 0].mean()
+    lag = int(round(l_uv / v / dt))
+    assert float(np.dot(u[:-lag], u[lag:]) / np.dot(u, u)) == pytest.approx(math.exp(-1.0), abs=0.08)
 
 
 def test_one_minus_cosine_gust() -> None:
@@ -283,6 +388,12 @@ def test_bad_input_is_rejected_with_names() -> None:
         WindParams(ref_height_m=0.01, roughness_m=0.05)
     with pytest.raises(ConfigError, match=r"gust_times_s\[1\]"):
         WindParams(gust_times_s=(1.0, float("nan")))
+    with pytest.raises(ConfigError, match="turbulence_rate_hz"):
+        WindParams(turbulence_rate_hz=0.0)
+    with pytest.raises(ConfigError, match="attitude_rate_hz"):
+        AutopilotGains(attitude_rate_hz=float("nan"))
+    with pytest.raises(ConfigError, match="guidance_rate_hz"):
+        AutopilotGains(guidance_rate_hz=100.0, attitude_rate_hz=50.0)
     with pytest.raises(ConfigError, match="dt_s"):
         DynamicsParams(dt_s=0.0)
     with pytest.raises(ConfigError, match="aircraft"):

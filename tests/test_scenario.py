@@ -144,6 +144,8 @@ def _with(path: str, value: object) -> dict:
         ("wind.speed_m_s", 45.0, "wind.speed_m_s"),
         ("wind.speed_m_s", -1.0, "wind.speed_m_s"),
         ("wind.from_deg", "north", "wind.from_deg"),
+        ("wind.turbulence_rate_hz", 2.0, "wind.turbulence_rate_hz"),
+        ("wind.turbulence_rate_hz", float("nan"), "wind.turbulence_rate_hz"),
         ("terrain.texture", "moon", "terrain.texture"),
         ("sensors.gnss.outages", [{"start_s": 10.0, "length_s": -5.0}], "sensors.gnss.outages[0].length_s"),
         ("sensors.gnss.outages", [{"start_s": 10.0}], "sensors.gnss.outages[0].length_s"),
@@ -278,3 +280,10 @@ def test_gsoe_override_checked_against_the_full_optical_config() -> None:
 def test_texture_names_match_the_renderer() -> None:
     textures = pytest.importorskip("sim.textures")
     assert set(TEXTURES) == set(textures.TEXTURE_NAMES)
+
+
+def test_turbulence_rate_is_a_scenario_field_with_the_wind_models_default() -> None:
+    from sim.wind import WindParams
+
+    assert build_scenario(_with("wind.turbulence_rate_hz", 50.0)).wind.turbulence_rate_hz == 50.0
+    assert build_scenario(minimal()).wind.turbulence_rate_hz == WindParams().turbulence_rate_hz

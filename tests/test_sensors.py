@@ -116,7 +116,7 @@ def test_imu_bias_random_walk_grows_like_sqrt_t() -> None:
     a = np.empty((n, 3))
     t0 = truth(0.0, accel_b_m_s2=Z3)
     for k in range(n):
-        s = imu.sample(dataclasses.replace(t0, t_s=k * dt))
+        s = imu.sample(t0._replace(t_s=k * dt))
         g[k], a[k] = s.gyro_b_rad_s, s.accel_b_m_s2
     np.testing.assert_array_equal(g[0], 0.0)  # starts at the drawn (here zero) turn-on bias
     for lag in (1, 10, 100, 1000):  # 5 ms to 5 s
@@ -357,3 +357,36 @@ def test_same_seed_same_samples_different_seed_different() -> None:
     a, b, c = _run(42), _run(42), _run(43)
     assert all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
     assert not all(np.array_equal(x, y) for x, y in zip(a, c, strict=True))
+
+
+def test_suite_per_step_noise_has_the_configured_statistics() -> None:
+    """Through SensorSuite.step (the per-step path, noise drawn in blocks of NOISE_BLOCK_ROWS), over many blocks."""
+    imu = dataclasses.replace(QUIET_IMU, rate_hz=240.0, gyro_noise_density_deg_s_sqrt_hz=0.02,
+                              accel_noise_density_m_s2_sqrt_hz=0.005)
+    cfg = SensorsConfig(imu=imu, ahrs=AhrsConfig(rate_hz=50.0, noise_deg=0.2, bias_std_deg=0.0, yaw_bias_std_deg=0.0,
+                                                 latency_s=0.0),
+                        airspeed=AirspeedConfig(rate_hz=50.0, noise_m_s=0.3, scale_error_std=0.0))
+    suite = SensorSuite(cfg, CameraSimConfig(), np.random.default_rng(31))
+    rates = np.array([0.2, -0.1, 0.05])
+    dt, n = 1.0 / 240.0, 240 * 250  # 250 s: 29 IMU noise blocks
+    gyro, accel, att, tas = [], [], [], []
+    for k in range(n):
+        r = suite.step(truth(k * dt, rates_b_rad_s=rates, roll_rad=0.1, pitch_rad=0.05, yaw_rad=1.0))
+        assert r.imu is not None  # the IMU samples at every step at 240 Hz
+        gyro.append(r.imu.gyro_b_rad_s)
+        accel.append(r.imu.accel_b_m_s2)
+        if r.ahrs is not None:
+            att.append((r.ahrs.roll_rad, r.ahrs.pitch_rad, r.ahrs.yaw_rad))
+        if r.airspeed is not None:
+            tas.append(r.airspeed.tas_m_s)
+    g = np.array(gyro) - rates
+    a = np.array(accel) - G_FRD
+    e_att = np.array(angle_diff(np.array(att), np.array([0.1, 0.05, 1.0])))
+    e_tas = np.array(tas) - 20.0
+    for err, std in ((g, math.radians(0.02) * math.sqrt(240.0)), (a, 0.005 * math.sqrt(240.0)),
+                     (e_att, math.radians(0.2)), (e_tas, 0.3)):
+        m = err.shape[0]
+        np.testing.assert_allclose(np.std(err, axis=0), std, rtol=0.03)
+        assert np.all(np.abs(np.mean(err, axis=0)) < 4 * std / math.sqrt(m))
+    assert len(att) == len(tas) == 50 * 250
+    assert abs(np.corrcoef(g[1:, 0], g[:-1, 0])[0, 1]) < 0.03  # white across the block boundaries too
