@@ -134,7 +134,7 @@ class EkfConfig:
     optical_psr_ref: float = 4.0
     optical_quality_floor: float = 0.2
     optical_att_rel_sigma_deg: float = 0.01
-    optical_att_rel_sigma_per_rad: float = 0.005
+    optical_att_rel_sigma_per_rad: float = 0.03
     optical_att_rel_sigma_deg_per_s: float = 0.12
     optical_rel_rot_fallback_deg: float = 10.0
     optical_min_height_m: float = 5.0
