@@ -45,12 +45,12 @@ US_PER_S = 1_000_000
 MAX_EXTRAPOLATION_US = 50_000
 # AHRS latency estimation (see the module docstring).  Candidates 0-0.25 s in 10 ms steps (a parabola refines the
 # minimum); the relative rotations compared span 1 s (a roll-in changes the roll rate by ~0.5 rad/s within that);
-# evaluated every 0.2 s (the residuals of overlapping windows are correlated, more often gains nothing); forgotten
-# over 120 s (the latency is a property of the installation, fixed within a flight).  The estimate is used only
-# after LATENCY_MIN_RATE_CHANGE_RAD of accumulated absolute rate change (a few roll-ins), before that it is 0.
+# evaluated every 0.5 s (windows overlapping by half: more overlap gives correlated residuals that add little);
+# forgotten over 120 s (the latency is a property of the installation, fixed within a flight).  The estimate is used
+# only after LATENCY_MIN_RATE_CHANGE_RAD of accumulated absolute rate change (a few roll-ins), before that it is 0.
 LATENCY_GRID_S = tuple(0.01 * i for i in range(26))
 LATENCY_WINDOW_S = 1.0
-LATENCY_UPDATE_S = 0.2
+LATENCY_UPDATE_S = 0.5
 LATENCY_FORGET_S = 120.0
 LATENCY_MIN_RATE_CHANGE_RAD = 2.0
 # Time constant of the complementary filter of compensated_at (s): about 2 tau * rate = 30 samples of a 50 Hz AHRS
@@ -231,12 +231,16 @@ class AttitudeBuffer:
         :meth:`attitude_at` (the raw AHRS) when the gyro does not cover the times needed; None when the AHRS does
         not cover ``t_us``.
         """
+        ts = self._att.t
+        if not ts or t_us < ts[0] or t_us > ts[-1] + MAX_EXTRAPOLATION_US:
+            return None                      # the AHRS does not cover t_us (the same test as _Track.at)
+        g_t = self._gyro.at(t_us)
+        if smooth and g_t is not None and self._c_mean is not None:
+            return quat.normalize(quat.mul(self._c_mean, g_t))       # the per-IMU-sample path
         raw = self._att.at(t_us)
         if raw is None:
             return None
         l_us = int(round(self._latency_s * US_PER_S))
-        ts = self._att.t
-        g_t = self._gyro.at(t_us)
         if g_t is None or (l_us == 0 and not smooth):
             return raw
         centre = min(t_us + l_us, ts[-1])
@@ -246,9 +250,7 @@ class AttitudeBuffer:
             if a is None or g0 is None:
                 return raw
             return quat.normalize(quat.mul(a, quat.mul(quat.conj(g0), g_t)))
-        if self._c_mean is None:
-            return self.compensated_at(t_us, smooth=False)
-        return quat.normalize(quat.mul(self._c_mean, g_t))
+        return self.compensated_at(t_us, smooth=False)          # smooth, but no AHRS sample averaged yet
 
     def attitude_at(self, t_us: int) -> Quat | None:
         """AHRS ``q_nb`` interpolated to ``t_us`` (None when outside the buffer)."""

@@ -30,6 +30,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
 from gsoe.camera import CameraModel
+from sim.render_kernels import blend_add, ground_maps, to_dn
 from sim.textures import GroundWorld
 
 # Sub-renders averaged across the exposure for motion blur.
@@ -50,6 +51,7 @@ ROTATION_TOL = 1e-6
 _DN_MAX = 255.0
 
 Roi = tuple[int, int, int, int]
+_NO_NOISE = np.zeros((0, 0), np.float32)
 
 
 _EYE3 = np.eye(3)
@@ -117,7 +119,12 @@ class CameraRenderer:
 
         pixel_angle = np.maximum(side_angle(half), side_angle(half[::-1])).reshape(h, w)
         self._log2_pixel_angle = np.log2(pixel_angle).astype(np.float32)
-        for arr in (self._rays_c, self._log2_pixel_angle):
+        # per mip level k: scale 2**-k and the atlas origin of the level minus half a texel (float32, as the maps)
+        k = np.arange(world.n_levels)
+        self._level_tables = (np.exp2(-k).astype(np.float32),
+                              (world.level_origin_px[k, 0] - 0.5).astype(np.float32),
+                              (world.level_origin_px[k, 1] - 0.5).astype(np.float32))
+        for arr in (self._rays_c, self._log2_pixel_angle, *self._level_tables):
             arr.setflags(write=False)
 
     # ------------------------------------------------------------------------------------------------ helpers
@@ -135,46 +142,29 @@ class CameraRenderer:
         return x0, y0, x1, y1
 
     def _maps(self, pos: NDArray[np.float64], R_nb: NDArray[np.float64], roi: Roi) -> dict[str, Any]:
-        """Per-pixel sampling of one pose over ``roi``: atlas maps of the two mip levels, blend weight, hit mask."""
+        """Per-pixel sampling of one pose over ``roi``: atlas maps of the two mip levels, blend weight, far fade,
+        hit mask (:func:`sim.render_kernels.ground_maps`)."""
         x0, y0, x1, y1 = roi
-        sl = (slice(y0, y1), slice(x0, x1))
-        height_m = -float(pos[2])
-        R_nc = (R_nb @ self.camera.R_bc).astype(np.float32)
-        d_n, d_e, d_d = cv2.split(cv2.transform(self._rays_c[sl], R_nc))  # ray directions in NED
-        hit = d_d > MIN_DOWN_COS
-        np.clip(d_d, MIN_DOWN_COS, None, out=d_d)
+        shape = (y1 - y0, x1 - x0)
         world = self.world
-        # distance to the ground along the ray, in level-0 texels
-        t_px = np.float32(height_m / world.m_per_px) / d_d
         u_c, v_c = world.reduce_texel(*(float(c) for c in world.ground_to_texel(pos[0], pos[1])))
-        d_e *= t_px
-        d_e += np.float32(u_c)
-        d_n *= t_px
-        np.subtract(np.float32(v_c), d_n, out=d_n)
-        uf, vf = world.fold_texel(d_e, d_n)
+        m0x, m0y = np.empty(shape, np.float32), np.empty(shape, np.float32)
+        m1x, m1y = np.empty(shape, np.float32), np.empty(shape, np.float32)
+        frac = np.zeros(shape, np.float32)
+        far = np.empty(shape, np.float32)
+        hit = np.empty(shape, np.bool_)
+        scale, ox, oy = self._level_tables
+        any_far = ground_maps(self._rays_c[y0:y1, x0:x1], self._log2_pixel_angle[y0:y1, x0:x1],
+                              R_nb @ self.camera.R_bc, -float(pos[2]), float(world.m_per_px), u_c, v_c,
+                              int(world.tile_px[0]), int(world.tile_px[1]), scale, ox, oy, float(LOD_BIAS),
+                              MIN_DOWN_COS, self.mipmap, m0x, m0y, m1x, m1y, frac, far, hit)
         if not self.mipmap:
-            return {"m0": world.atlas_maps(uf, vf, 0), "m1": None, "frac": None, "far": None, "hit": hit}
-        # mip level = log2(footprint / texel) = log2((t / m) / cos(incidence)) + log2(pixel_angle)
-        t_px /= d_d
-        lod = cv2.log(t_px)
-        lod *= np.float32(1.0 / math.log(2.0))
-        lod += self._log2_pixel_angle[sl]
-        if LOD_BIAS:
-            lod += np.float32(LOD_BIAS)
-        # Beyond the coarsest level, fade to the tile's mean over one more level (no aliasing towards the horizon).
-        top = world.n_levels - 1
-        far = None
-        if float(lod.max()) > top:
-            far = np.clip(lod - np.float32(top), 0.0, 1.0)
-        np.clip(lod, 0.0, top, out=lod)
-        level_f = np.floor(lod)
-        lod -= level_f  # blend weight of the coarser level
-        level = level_f.astype(np.uint8)
-        return {"m0": world.atlas_maps(uf, vf, level), "m1": world.atlas_maps(uf, vf, level, shift=1),
-                "frac": lod, "far": far, "hit": hit}
+            return {"m0": (m0x, m0y), "m1": None, "frac": frac, "far": None, "hit": hit}
+        return {"m0": (m0x, m0y), "m1": (m1x, m1y), "frac": frac, "far": far if any_far else None, "hit": hit}
 
     @staticmethod
     def _sample(atlas: NDArray[Any], mean: float | NDArray[np.float32], maps: dict[str, Any]) -> NDArray[np.float32]:
+        """Colour sampling (``render_color``): the two levels' bilinear samples blended, faded to ``mean``."""
         mx, my = maps["m0"]
         a = np.asarray(cv2.remap(atlas, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE), dtype=np.float32)
         if maps["m1"] is not None:
@@ -188,6 +178,22 @@ class CameraRenderer:
             far = maps["far"] if a.ndim == 2 else maps["far"][..., None]
             a += (mean - a) * far
         return a
+
+    def _add_pose(self, pos: NDArray[np.float64], R_nb: NDArray[np.float64], roi: Roi,
+                  acc: NDArray[np.float32]) -> None:
+        """Add the intensity seen from one pose over ``roi`` to ``acc``."""
+        maps = self._maps(pos, R_nb, roi)
+        atlas = self.world.atlas
+        mx, my = maps["m0"]
+        a = cv2.remap(atlas, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        if maps["m1"] is not None:
+            mx, my = maps["m1"]
+            b = cv2.remap(atlas, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        else:
+            b = a
+        far = maps["far"]
+        blend_add(a, b, maps["frac"], maps["frac"] if far is None else far, far is not None,
+                  float(self.world.mean_intensity), maps["hit"], SKY_INTENSITY_DN, acc)
 
     def _check_pose(self, pos_ned_m: ArrayLike, R_nb: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         pos = _vec3(pos_ned_m, "pos_ned_m")
@@ -206,42 +212,41 @@ class CameraRenderer:
         exposure = _nonneg(exposure_s, "exposure_s")
         vel = _vec3(vel_ned_m_s, "vel_ned_m_s")
         rates = _vec3(rates_b_rad_s, "rates_b_rad_s")
-        if exposure == 0.0 or (not vel.any() and not rates.any()):
-            return self._render_pose(pos, R, box)
-        # image motion at the centre during the exposure: translation over the height plus rotation
-        f_px = self.camera.focal_px
-        blur_px = exposure * f_px * (math.hypot(*vel.tolist()) / max(-pos[2], 1e-3) + math.hypot(*rates.tolist()))
-        n = min(self.blur_subsamples, int(np.ceil(blur_px / BLUR_PX_PER_SUBSAMPLE)))
+        acc = np.zeros((box[3] - box[1], box[2] - box[0]), np.float32)
+        n = self._blur_count(pos, exposure, vel, rates)
         if n <= 1:
-            return self._render_pose(pos, R, box)
-        acc: NDArray[np.float32] | None = None
+            self._add_pose(pos, R, box, acc)
+            return acc
         for dt in exposure * ((np.arange(n) + 0.5) / n - 0.5):
             p = pos + vel * dt
             if p[2] >= 0:
                 raise ValueError("the camera crosses the ground plane during the exposure")
-            img = self._render_pose(p, R @ Rotation.from_rotvec(rates * dt).as_matrix(), box)
-            if acc is None:
-                acc = img
-            else:
-                acc += img
-        assert acc is not None
+            self._add_pose(p, R @ Rotation.from_rotvec(rates * dt).as_matrix(), box, acc)
         acc *= np.float32(1.0 / n)
         return acc
 
-    def _render_pose(self, pos: NDArray[np.float64], R_nb: NDArray[np.float64], roi: Roi) -> NDArray[np.float32]:
-        maps = self._maps(pos, R_nb, roi)
-        img = self._sample(self.world.atlas, self.world.mean_intensity, maps)
-        img[~maps["hit"]] = SKY_INTENSITY_DN
-        return img
+    def _blur_count(self, pos: NDArray[np.float64], exposure: float, vel: NDArray[np.float64],
+                    rates: NDArray[np.float64]) -> int:
+        """Sub-renders for the motion blur: one per ``BLUR_PX_PER_SUBSAMPLE`` of image motion at the centre during
+        the exposure (translation over the height plus rotation), at most ``blur_subsamples``."""
+        if exposure == 0.0:
+            return 1
+        f_px = self.camera.focal_px
+        vx, vy, vz = vel.tolist()
+        wx, wy, wz = rates.tolist()
+        blur_px = exposure * f_px * (math.sqrt(vx * vx + vy * vy + vz * vz) / max(-float(pos[2]), 1e-3)
+                                     + math.sqrt(wx * wx + wy * wy + wz * wz))
+        return max(1, min(self.blur_subsamples, math.ceil(blur_px / BLUR_PX_PER_SUBSAMPLE)))
 
     def render(self, pos_ned_m: ArrayLike, R_nb: ArrayLike, *, roi: Roi | None = None, exposure_s: float = 0.0,
                vel_ned_m_s: ArrayLike | None = None, rates_b_rad_s: ArrayLike | None = None,
                noise_std: float = 0.0, gain: float = 1.0, rng: np.random.Generator | None = None,
-               ) -> NDArray[np.uint8]:
+               out: NDArray[np.uint8] | None = None) -> NDArray[np.uint8]:
         """The raw frame (``height_px x width_px`` uint8 intensity) seen from ``pos_ned_m`` (NED, m; ``[2]`` is
         minus the height above the ground plane) with attitude ``R_nb`` (body to NED).
 
-        ``roi = (x0, y0, x1, y1)`` (raw pixels, end exclusive) computes only that rectangle; the rest is 0.
+        ``roi = (x0, y0, x1, y1)`` (raw pixels, end exclusive) computes only that rectangle; the rest is 0, or, with
+        ``out`` (a uint8 array of the frame's shape, written in place and returned), left as it was.
         ``exposure_s`` > 0 with ``vel_ned_m_s`` (m/s, NED) and/or ``rates_b_rad_s`` (body rates, rad/s) adds
         motion blur, the pose being the one at mid-exposure.  The intensity is multiplied by ``gain`` and
         Gaussian noise of ``noise_std`` DN drawn from ``rng`` is added (``rng`` required when ``noise_std > 0``).
@@ -250,19 +255,21 @@ class CameraRenderer:
         g = _nonneg(gain, "gain", positive=True)
         if noise > 0 and not isinstance(rng, np.random.Generator):
             raise ValueError("noise_std > 0 needs rng, a numpy.random.Generator")
+        shape = (self.height_px, self.width_px)
+        if out is None:
+            out = np.zeros(shape, np.uint8)
+        elif not (isinstance(out, np.ndarray) and out.shape == shape and out.dtype == np.uint8):
+            raise ValueError(f"out must be a uint8 array of shape {shape}, got {type(out).__name__} "
+                             f"{getattr(out, 'shape', '')} {getattr(out, 'dtype', '')}")
         box = self._check_roi(roi)
         img = self.render_intensity(pos_ned_m, R_nb, roi=box, exposure_s=exposure_s, vel_ned_m_s=vel_ned_m_s,
                                     rates_b_rad_s=rates_b_rad_s)
-        if g != 1.0:
-            img *= np.float32(g)
+        z = _NO_NOISE
         if noise > 0:
             assert rng is not None
-            img += np.float32(noise) * rng.standard_normal(img.shape, dtype=np.float32)
-        np.clip(img, 0.0, _DN_MAX, out=img)
+            z = rng.standard_normal(img.shape, dtype=np.float32)
         x0, y0, x1, y1 = box
-        out = np.zeros((self.height_px, self.width_px), np.uint8)
-        np.rint(img, out=img)
-        out[y0:y1, x0:x1] = img
+        to_dn(img, g, z, noise, out[y0:y1, x0:x1])
         return out
 
     def render_color(self, pos_ned_m: ArrayLike, R_nb: ArrayLike, *, roi: Roi | None = None) -> NDArray[np.uint8]:

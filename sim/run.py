@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from fusion.config import ekf_config_from_raw
@@ -135,11 +136,16 @@ class _FrameSource:
     """A camera exposure rendered on demand, only the regions the estimator samples (:data:`gsoe.stabilise.Frame`).
 
     Each call renders the requested region with the exposure's motion blur, noise and gain; the render time is
-    booked to the ``render`` timer (and taken out of the estimator's)."""
+    booked to the ``render`` timer (and taken out of the estimator's).  A region is written into ``frame_buf``, one
+    frame-sized array shared by the flight's frames (the estimator reads the region it asked for at once; outside
+    it the array holds older pixels, as :data:`gsoe.stabilise.Frame` allows); the whole frame (no region) is a
+    new array."""
 
     def __init__(self, renderer: CameraRenderer, truth: TruthState, R_nb: np.ndarray, exposure_s: float,
-                 noise_std: float, gain: float, rng: np.random.Generator, timers: _Timers) -> None:
+                 noise_std: float, gain: float, rng: np.random.Generator, timers: _Timers,
+                 frame_buf: np.ndarray) -> None:
         self._renderer = renderer
+        self._buf = frame_buf
         self._pos = truth.pos_ned_m
         self._vel = truth.vel_ned_m_s
         self._rates = truth.rates_b_rad_s
@@ -154,7 +160,7 @@ class _FrameSource:
         t0 = time.perf_counter()
         img = self._renderer.render(self._pos, self._R_nb, roi=roi, exposure_s=self._exposure_s,
                                     vel_ned_m_s=self._vel, rates_b_rad_s=self._rates, noise_std=self._noise_std,
-                                    gain=self._gain, rng=self._rng)
+                                    gain=self._gain, rng=self._rng, out=None if roi is None else self._buf)
         dt = time.perf_counter() - t0
         self._timers.s["render"] += dt
         self._timers.s["gsoe"] -= dt
@@ -191,6 +197,7 @@ def run_flight(scn: Scenario, *, seed: int, duration_s: float | None = None, out
 
     world = GroundWorld.from_name(scn.terrain.texture, seed=seed)
     renderer = CameraRenderer(true_camera, world)
+    frame_buf = np.zeros((renderer.height_px, renderer.width_px), np.uint8)
     dyn = FlightDynamics(DynamicsParams(dt_s=scn.dt_s), wind_params(scn), rng_dyn)
     st = scn.mission.start
     trim = dyn.trim(st.north_m, st.east_m, st.height_m, st.airspeed_m_s, st.yaw_rad)
@@ -272,6 +279,10 @@ def run_flight(scn: Scenario, *, seed: int, duration_s: float | None = None, out
         elif fig is not None and not fig.get("done") and s.cycle_id == fig["cycle_id"] and s.valid:
             fig["path"].append((s.dx_px, s.dy_px))
 
+    # OpenCV's worker threads only spin (sched_yield) on the small images here: ~35 % more CPU for no speed, which
+    # a Monte Carlo pool of one process per core pays twice.  One thread for the flight, restored afterwards.
+    cv_threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
     try:
         for _ in range(n_steps):
             t0 = time.perf_counter()
@@ -331,7 +342,7 @@ def run_flight(scn: Scenario, *, seed: int, duration_s: float | None = None, out
                 t0 = timers.add("ekf", t0)
                 R_nb = R_nb_from_euler(truth.roll_rad, truth.pitch_rad, truth.yaw_rad)
                 source = _FrameSource(renderer, truth, R_nb, r.frame.exposure_s, scn.camera.noise_std,
-                                      scn.camera.gain, rng_cam, timers)
+                                      scn.camera.gain, rng_cam, timers, frame_buf)
                 pending.append((r.frame.t_us, source() if full_frame else source, h_m))
                 t0 = timers.add("render", t0)
                 _record_frame(series, truth, ekf, est_now, runlog)
@@ -348,6 +359,7 @@ def run_flight(scn: Scenario, *, seed: int, duration_s: float | None = None, out
         crashed = f"{type(e).__name__}: {e}"
         log.exception("flight stopped at t = %.1f s", truth.t_s)
     finally:
+        cv2.setNumThreads(cv_threads)
         if bar is not None:
             bar.close()
         if runlog is not None:
