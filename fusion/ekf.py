@@ -42,7 +42,12 @@ Prediction
     and delay Jacobians included; tests check it), so the covariance rate is a free choice: the covariance is
     predicted at most every ``predict_period_s`` while only IMU samples arrive, and once at the stamp of a
     measurement (all measurements with one stamp share it).  Process noise from :class:`~fusion.config.EkfConfig`
-    (white acceleration on each NED axis, random walks on the slow states).  IMU samples wait in their FIFO until
+    (white acceleration on each NED axis, random walks on the slow states).  The wind is a walking mean
+    ``wind_mean_ne`` plus first-order Gauss-Markov turbulence: over a prediction of ``dt`` the total wind relaxes as
+    ``wind' = e wind + (1 - e) wind_mean`` (``e = exp(-dt / wind_turb_corr_time_s)``) with the turbulence's noise
+    ``sigma^2 (1 - e^2)``; ``sigma^2`` is estimated in flight (``wind_turb_adapt_time_s``) from the estimated
+    turbulence ``wind - wind_mean`` and its variance, so the wind's covariance follows the day's turbulence level.
+    IMU samples wait in their FIFO until
     something needs them (a due measurement, a reader, a prediction period behind the horizon) and are then
     processed in one loop; the result does not depend on when that happens.
 
@@ -420,6 +425,21 @@ _I_VEL = S.idx("vel_ned")
 _I_CLONE = S.idx("base_pos_ned")
 _I_YAW = S.yaw_bias.start
 _I_PVW = S.idx("pos_ne", "vel_ne", "wind_ne")
+_I_WIND = S.idx("wind_ne")
+_I_WMEAN = S.idx("wind_mean_ne")
+# flat indices of the wind's Gauss-Markov entries of F: d wind / d wind (N, E), then d wind / d wind_mean (N, E)
+_F_WIND = np.concatenate([np.ravel_multi_index((_I_WIND, _I_WIND), (S.dim, S.dim)),
+                          np.ravel_multi_index((_I_WIND, _I_WMEAN), (S.dim, S.dim))])
+# flat indices of the wind's process-noise entries: (wind, wind), (wind, mean), (mean, wind)
+_Q_WW = np.ravel_multi_index((_I_WIND, _I_WIND), (S.dim, S.dim))
+_Q_WM = np.ravel_multi_index((_I_WIND, _I_WMEAN), (S.dim, S.dim))
+_Q_MW = np.ravel_multi_index((_I_WMEAN, _I_WIND), (S.dim, S.dim))
+# indices of what the turbulence adaptation reads: wind (N, E) and its mean (N, E) in x; in P the variance of
+# wind - mean per axis, (wind, wind) - 2 (wind, mean) + (mean, mean), N then E
+_P_TURB = np.ravel_multi_index(([_I_WIND[0], _I_WIND[0], _I_WMEAN[0], _I_WIND[1], _I_WIND[1], _I_WMEAN[1]],
+                                [_I_WIND[0], _I_WMEAN[0], _I_WMEAN[0], _I_WIND[1], _I_WMEAN[1], _I_WMEAN[1]]),
+                               (S.dim, S.dim))
+_X_TURB = np.array([_I_WIND[0], _I_WIND[1], _I_WMEAN[0], _I_WMEAN[1]])
 _IX_PVW = np.ix_(_I_PVW, _I_PVW)
 _POS, _VEL, _BA = S.pos_ned, S.vel_ned, S.accel_bias_b
 _EYE = np.eye(S.dim)
@@ -487,7 +507,7 @@ def _chol_inv(Sm: list[list[float]]) -> list[list[float]] | None:
     return Ci
 
 
-def _propagate_into(x: Vec, inc: ImuIncrement, F: Mat) -> Vec:
+def _propagate_into(x: Vec, inc: ImuIncrement, F: Mat, wind_decay: float = 1.0) -> Vec:
     """Mean propagation over one increment; returns the new state and writes the IMU-dependent entries of the Jacobian
     ``F = d x_new / d x`` into ``F`` (its other entries must be those of the identity).
 
@@ -551,6 +571,10 @@ def _propagate_into(x: Vec, inc: ImuIncrement, F: Mat) -> Vec:
         c * j0 + s * j1, -s * j0 + c * j1, j2,            # d pos / d att_delay = R_z(-b) sum R (w x f) dt (T - t)
         c * k0 + s * k1, -s * k0 + c * k1, k2,            # d vel / d att_delay = R_z(-b) sum R (w x f) dt
     )
+    if wind_decay != 1.0:                                 # turbulence relaxing to the mean (see _FilterCore)
+        iw, im = _I_WIND[0], _I_WMEAN[0]
+        xl[iw] = wind_decay * xl[iw] + (1.0 - wind_decay) * xl[im]
+        xl[iw + 1] = wind_decay * xl[iw + 1] + (1.0 - wind_decay) * xl[im + 1]
     return np.array(xl)
 
 
@@ -570,9 +594,16 @@ class _FilterCore(ExtendedKalmanFilter):
         self.P = P0
         self.F = np.eye(S.dim)             # identity apart from the entries _propagate_into writes every time
         self._cfg = cfg
-        self._q_cache: dict[int, Mat] = {}
+        self._q_cache: dict[int, tuple[Mat, float, float, float, float]] = {}
+        self._decay = 1.0                  # the wind turbulence's decay over the current prediction
+        self._q_turb = 0.0                 # the turbulence's noise over the current prediction (m^2/s^2 per axis)
+        #: the turbulence variance in use (m^2/s^2 per axis): ``wind_turb_sigma_m_s^2``, adapted (see predict_x)
+        self.turb_var = cfg.wind_turb_sigma_m_s**2
+        self._turb_var_lo = cfg.wind_turb_sigma_min_m_s**2
+        self._turb_var_hi = cfg.wind_turb_sigma_max_m_s**2
         rw = np.zeros(S.dim)               # random-walk variance rates of the slow states (per second)
-        for name, q in (("wind_ne", cfg.wind_rw_m_s_per_rt_s), ("accel_bias_b", cfg.accel_bias_rw_m_s2_per_rt_s),
+        for name, q in (("wind_mean_ne", cfg.wind_rw_m_s_per_rt_s), ("wind_ne", cfg.wind_rw_m_s_per_rt_s),
+                        ("accel_bias_b", cfg.accel_bias_rw_m_s2_per_rt_s),
                         ("yaw_bias", cfg.yaw_bias_rw_rad_per_rt_s), ("opt_rot", cfg.opt_rot_rw_rad_per_rt_s),
                         ("baro_bias", cfg.baro_bias_rw_m_per_rt_s), ("terrain_h", cfg.terrain_rw_m_per_rt_s),
                         ("tas_scale", cfg.tas_scale_rw_per_rt_s), ("att_delay", cfg.att_delay_rw_s_per_rt_s)):
@@ -581,24 +612,74 @@ class _FilterCore(ExtendedKalmanFilter):
         self.n_predictions = 0
 
     def process_noise(self, dt_s: float) -> Mat:
+        """``Q`` over a prediction of ``dt_s`` with the turbulence variance now in use."""
+        Q, _, g, _, _ = self._noise_and_decay(dt_s)
+        Q = Q.copy()
+        Q.flat[_Q_WW] += self.turb_var * g
+        return Q
+
+    def _noise_and_decay(self, dt_s: float) -> tuple[Mat, float, float, float, float]:
+        """``Q`` without the turbulence's own term, the turbulence decay ``e = exp(-dt / tau)``, ``1 - e^2``, the
+        adaptation's decay ``a = exp(-dt / A)`` (``A = wind_turb_adapt_time_s``; 1 when not adapting) and
+        ``c = (2 / tau) / (2 / tau - 1 / A) (a - e^2)`` over a prediction of ``dt_s`` (cached per length).
+
+        Wind: ``wind = mean + turb``, the mean a random walk (rate ``q``), the turbulence first-order Gauss-Markov
+        (``sigma``, ``tau``), so over ``dt`` ``Q_mean = q dt``, ``Q_wind = q dt + sigma^2 (1 - e^2)`` and
+        ``Q_wind,mean = q dt`` (the mean's walk moves the total wind as well).  The ``sigma^2 (1 - e^2)`` term is
+        added in :meth:`predict` (``sigma`` may adapt)."""
         key = round(dt_s * US_PER_S)
-        Q = self._q_cache.get(key)
-        if Q is None:
+        hit = self._q_cache.get(key)
+        if hit is None:
+            cfg = self._cfg
             Q = np.diag(self._rw_var_rate * dt_s)
-            qpv = Q_continuous_white_noise(dim=2, dt=dt_s, spectral_density=self._cfg.accel_noise_m_s2_per_rt_hz**2)
+            qpv = Q_continuous_white_noise(dim=2, dt=dt_s, spectral_density=cfg.accel_noise_m_s2_per_rt_hz**2)
             Q.flat[_Q_PP] = qpv[0, 0]
             Q.flat[_Q_PV] = qpv[0, 1]
             Q.flat[_Q_VP] = qpv[1, 0]
             Q.flat[_Q_VV] = qpv[1, 1]
+            decay = math.exp(-dt_s / cfg.wind_turb_corr_time_s)
+            q_mean = cfg.wind_rw_m_s_per_rt_s**2 * dt_s
+            Q.flat[_Q_WW] = q_mean
+            Q.flat[_Q_WM] = q_mean
+            Q.flat[_Q_MW] = q_mean
+            tau, adapt = cfg.wind_turb_corr_time_s, cfg.wind_turb_adapt_time_s
+            e2 = math.exp(-2.0 * dt_s / tau)
+            if adapt > 0.0:
+                a = math.exp(-dt_s / adapt)
+                k = 2.0 / tau - 1.0 / adapt
+                # int_0^dt exp(-t / A) (2 / tau) exp(-2 (dt - t) / tau) dt (its limit where 2 / tau = 1 / A)
+                c = (2.0 / tau) * (a - e2) / k if abs(k * dt_s) > 1e-9 else (2.0 * dt_s / tau) * e2
+            else:
+                a, c = 1.0, 0.0
             if len(self._q_cache) >= Q_CACHE_MAX:
                 self._q_cache.clear()
             Q.flags.writeable = False
-            self._q_cache[key] = Q
-        return Q
+            hit = self._q_cache[key] = (Q, decay, -math.expm1(-2.0 * dt_s / tau), a, c)
+        return hit
 
     def predict_x(self, u: ImuIncrement = None) -> None:  # type: ignore[assignment]
-        self.x = _propagate_into(self.x, u, self.F)
-        self.Q = self.process_noise(u.dt_s)
+        self.Q, e, g, a, c = self._noise_and_decay(u.dt_s)
+        v0 = self.turb_var
+        if self._cfg.wind_turb_adapt_time_s > 0.0:
+            # turbulence intensity: the estimated turbulence d = wind - mean squared, per axis, averaged over the
+            # adaptation time A (exponentially), within [sigma_min, sigma_max]^2.  (Adding var(d) from P, as an
+            # unbiased E[d^2] would, keeps sigma at any value: where the airspeed cannot split the wind into mean and
+            # turbulence, var(d) stays at the sigma^2 in use.)  Over the prediction the variance moves as
+            # v(t) = d2 + (v0 - d2) exp(-t / A), and the noise is the exact integral of v(t) (2 / tau) exp(-2 (dt - t)
+            # / tau): d2 (1 - e^2) + (v0 - d2) c, so the result does not depend on the prediction rate.
+            wn, we, mn, me = self.x.take(_X_TURB).tolist()
+            ann, anm, amm, aee, aem, bmm = self.P.take(_P_TURB).tolist()
+            dn, de = wn - mn, we - me
+            d2 = 0.5 * (dn * dn + de * de + ann - 2.0 * anm + amm + aee - 2.0 * aem + bmm)
+            self._q_turb = d2 * g + (v0 - d2) * c
+            self.turb_var = min(self._turb_var_hi, max(self._turb_var_lo, d2 + (v0 - d2) * a))
+        else:
+            self._q_turb = v0 * g
+        # the turbulence relaxes towards the mean: wind' = e wind + (1 - e) mean
+        self.x = _propagate_into(self.x, u, self.F, e)
+        if e != self._decay:
+            self.F.flat[_F_WIND] = (e, e, 1.0 - e, 1.0 - e)
+            self._decay = e
 
     def predict(self, u: ImuIncrement = None) -> None:  # type: ignore[assignment]
         """filterpy's prediction, then ``P`` symmetrised (``F P F'`` is symmetric only up to rounding)."""
@@ -606,6 +687,10 @@ class _FilterCore(ExtendedKalmanFilter):
         P = self.P
         P += P.T
         P *= 0.5
+        q_turb = self._q_turb                              # the turbulence's process noise (its sigma adapts)
+        iw = _I_WIND[0]
+        P[iw, iw] += q_turb
+        P[iw + 1, iw + 1] += q_turb
         self.n_predictions += 1
 
 
@@ -662,18 +747,18 @@ class NavEkf:
         x0[S.pos_ned] = arr["pos_ned_m"]
         x0[S.vel_ned] = arr["vel_ned_m_s"]
         x0[S.wind_ne] = arr["wind_ne_m_s"]
+        x0[S.wind_mean_ne] = arr["wind_ne_m_s"]
         x0[S.terrain_h] = arr["terrain_h_m"]
         x0[S.base_pos_ned] = arr["pos_ned_m"]
         self._init_var = self._initial_variances()
         # partial-update (Schmidt) states: their rows of every gain are scaled down (see the module docstring)
         self._gain_scale = np.ones(S.dim)
-        self._gain_scale[S.tas_scale] = cfg.tas_scale_update_fraction
-        part = [(int(i), 1.0 - float(self._gain_scale[i])) for i in np.flatnonzero(self._gain_scale != 1.0)]
-        # The Joseph form with the gain K = D K_opt (D = diag(g)), P - K H P - P H' K' + K S K', is P - A o G with
-        # A = P H' S^-1 H P and G_ij = g_i + g_j - g_i g_j = 1 - (1 - g_i)(1 - g_j): the optimal-gain update except
-        # in the block of these states, where A_ij (1 - g_i)(1 - g_j) is given back.  The correction is D K_opt y.
-        self._schmidt = [(i, j, ci * cj) for i, ci in part for j, cj in part]   # (i, j, (1 - g_i)(1 - g_j))
+        self._schmidt: list[tuple[int, int, float]] = []
+        self._set_scale_fraction(cfg.tas_scale_update_fraction)
         P0 = np.diag(self._init_var)
+        # the total wind is the mean plus independent turbulence: cov(wind, mean) = var(mean)
+        P0[_I_WIND, _I_WMEAN] = P0[_I_WMEAN, _I_WIND] = self._init_var[_I_WMEAN]
+        P0[_I_WIND, _I_WIND] += cfg.wind_turb_sigma_m_s**2
         P0[np.ix_(_I_CLONE, _I_POS)] = P0[np.ix_(_I_POS, _I_POS)]
         P0[np.ix_(_I_POS, _I_CLONE)] = P0[np.ix_(_I_POS, _I_POS)]
         self._kf = _FilterCore(x0, P0, cfg)
@@ -737,6 +822,12 @@ class NavEkf:
         """Copy of the state covariance."""
         self._process_due()
         return self._kf.P.copy()
+
+    @property
+    def wind_turb_sigma_m_s(self) -> float:
+        """The turbulence standard deviation the wind model uses now (m/s per axis; adapted in flight)."""
+        self._process_due()
+        return math.sqrt(self._kf.turb_var)
 
     @property
     def covariance_predictions(self) -> int:
@@ -1070,6 +1161,15 @@ class NavEkf:
         self._seg = [0.0] * _SEG_LEN
         self._seg_open = False
 
+    def _set_scale_fraction(self, g: float) -> None:
+        """Partial-update fraction ``g`` of the airspeed scale (0: consider state)."""
+        self._gain_scale[S.tas_scale] = g
+        part = [(int(i), 1.0 - float(self._gain_scale[i])) for i in np.flatnonzero(self._gain_scale != 1.0)]
+        # The Joseph form with the gain K = D K_opt (D = diag(g)), P - K H P - P H' K' + K S K', is P - A o G with
+        # A = P H' S^-1 H P and G_ij = g_i + g_j - g_i g_j = 1 - (1 - g_i)(1 - g_j): the optimal-gain update except
+        # in the block of these states, where A_ij (1 - g_i)(1 - g_j) is given back.  The correction is D K_opt y.
+        self._schmidt = [(i, j, ci * cj) for i, ci in part for j, cj in part]   # (i, j, (1 - g_i)(1 - g_j))
+
     def _flush(self) -> None:
         """Predict the state and covariance over everything consumed: the filter time becomes ``_t_in_us``."""
         if self._seg_open:
@@ -1248,6 +1348,7 @@ class NavEkf:
         var[S.vel_ne] = c.init_vel_ne_sigma_m_s**2
         var[S.vel_d] = c.init_vel_d_sigma_m_s**2
         var[S.wind_ne] = c.init_wind_sigma_m_s**2
+        var[S.wind_mean_ne] = c.init_wind_sigma_m_s**2
         var[S.accel_bias_b] = c.init_accel_bias_sigma_m_s2**2
         var[S.yaw_bias] = c.init_yaw_bias_sigma_rad**2
         var[S.opt_rot] = c.init_opt_rot_sigma_rad**2
@@ -1310,14 +1411,21 @@ class NavEkf:
         x, P = self._kf.x, self._kf.P
         wind, J, d_tas, d_beta = TrueAirspeed.wind_from_airspeed(x, tas, self._att.yaw_rad)
         A = J @ P
-        iw = S.idx("wind_ne")
+        iw, im = _I_WIND, _I_WMEAN
         x_new = x.copy()
         x_new[iw] = wind
+        x_new[im] = wind                           # the mean: the same wind, less the turbulence (unknown, zero mean)
         P_new = P.copy()
         P_new[iw, :] = A
         P_new[:, iw] = A.T
-        P_new[np.ix_(iw, iw)] = (A @ J.T + self.cfg.tas_sigma_m_s**2 * np.outer(d_tas, d_tas)
-                                 + self.cfg.sideslip_sigma_rad**2 * np.outer(d_beta, d_beta))
+        P_new[im, :] = A
+        P_new[:, im] = A.T
+        Pww = (A @ J.T + self.cfg.tas_sigma_m_s**2 * np.outer(d_tas, d_tas)
+               + self.cfg.sideslip_sigma_rad**2 * np.outer(d_beta, d_beta))
+        P_new[np.ix_(iw, iw)] = Pww
+        P_new[np.ix_(iw, im)] = Pww
+        P_new[np.ix_(im, iw)] = Pww
+        P_new[np.ix_(im, im)] = Pww + self._kf.turb_var * np.eye(2)
         self._store(x_new, 0.5 * (P_new + P_new.T))
         self._wind_reset_pending = False
 

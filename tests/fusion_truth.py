@@ -214,7 +214,9 @@ def filter_config(truth: TruthConfig | None = None, **overrides: Any) -> EkfConf
         EkfConfig(), fusion_delay_s=0.0, optical_match_sigma_px=t.match_noise_px, optical_psr_ref=t.psr,
         optical_att_rel_sigma_deg=t.att_rel_noise_deg, optical_att_rel_sigma_per_rad=0.0,
         optical_att_rel_sigma_deg_per_s=0.0, wind_rw_m_s_per_rt_s=0.05, sideslip_sigma_deg=5.0,
-        gnss_pos_corr_time_s=0.0, init_tas_scale_sigma=max(abs(t.tas_scale_err), 1e-3))
+        gnss_pos_corr_time_s=0.0, init_tas_scale_sigma=max(abs(t.tas_scale_err), 1e-3),
+        wind_turb_sigma_m_s=0.05, wind_turb_sigma_min_m_s=0.05, wind_turb_adapt_time_s=0.0,
+        tas_scale_update_fraction=0.03)
     return dataclasses.replace(base, **overrides)
 
 
