@@ -9,9 +9,10 @@ The texture is prefiltered to each pixel's ground footprint (mip-mapping with tr
 footprint is ``distance * pixel_angle / cos(incidence)`` (``pixel_angle`` is the angle a raw pixel subtends,
 from the calibrated model, so the fisheye's compression towards the edge counts), the mip level is
 ``log2(footprint / m_per_px)``, and the two nearest levels are sampled bilinearly with ``cv2.remap`` from the
-world's atlas and blended.  Everything is vectorised over the pixels of the requested region of interest; only
-the region is computed (the rest of the frame is 0), so rendering just what the estimator reads is cheap and
-gives the same pixels as a full-frame render.
+world's atlas and blended.  The per-pixel arithmetic runs in compiled loops over the requested region of interest
+(:mod:`sim.render_kernels`, numba), the look-ups are ``cv2.remap``; only the region is computed (the rest of the
+frame is 0, or left as it was in a caller's ``out`` array), so rendering just what the estimator reads is cheap
+and gives the same pixels as a full-frame render.
 
 Options per frame: exposure-time motion blur (the mean of :data:`MOTION_BLUR_SUBSAMPLES` sub-renders spread
 over the exposure, position advanced by ``vel_ned_m_s * dt`` and attitude by ``rates_b_rad_s * dt``; the pose
