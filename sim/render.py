@@ -120,12 +120,7 @@ class CameraRenderer:
 
         pixel_angle = np.maximum(side_angle(half), side_angle(half[::-1])).reshape(h, w)
         self._log2_pixel_angle = np.log2(pixel_angle).astype(np.float32)
-        # per mip level k: scale 2**-k and the atlas origin of the level minus half a texel (float32, as the maps)
-        k = np.arange(world.n_levels)
-        self._level_tables = (np.exp2(-k).astype(np.float32),
-                              (world.level_origin_px[k, 0] - 0.5).astype(np.float32),
-                              (world.level_origin_px[k, 1] - 0.5).astype(np.float32))
-        for arr in (self._rays_c, self._log2_pixel_angle, *self._level_tables):
+        for arr in (self._rays_c, self._log2_pixel_angle):
             arr.setflags(write=False)
 
     # ------------------------------------------------------------------------------------------------ helpers
@@ -154,7 +149,7 @@ class CameraRenderer:
         frac = np.zeros(shape, np.float32)
         far = np.empty(shape, np.float32)
         hit = np.empty(shape, np.bool_)
-        scale, ox, oy = self._level_tables
+        scale, ox, oy = world.level_tables
         any_far = ground_maps(self._rays_c[y0:y1, x0:x1], self._log2_pixel_angle[y0:y1, x0:x1],
                               R_nb @ self.camera.R_bc, -float(pos[2]), float(world.m_per_px), u_c, v_c,
                               int(world.tile_px[0]), int(world.tile_px[1]), scale, ox, oy, float(LOD_BIAS),

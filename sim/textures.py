@@ -413,42 +413,27 @@ class GroundWorld:
         """Mirror-fold unwrapped level-0 texel coordinates into the tile (see :func:`mirror_wrap`)."""
         return mirror_wrap(u, self.tile_px[0]), mirror_wrap(v, self.tile_px[1])
 
-    def atlas_maps(self, uf: NDArray[np.float32], vf: NDArray[np.float32], level: NDArray[np.integer] | int, *,
-                   shift: int = 0) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    def atlas_maps(self, uf: NDArray[np.float32], vf: NDArray[np.float32], level: int
+                   ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
         """``cv2.remap`` maps into the atlas for *folded* level-0 texel coordinates ``(uf, vf)`` (from
-        :meth:`fold_texel`) at mip level ``level + shift``, clipped to the pyramid; ``level`` is an int or an
-        integer array of the coordinates' shape (uint8 is the fast path: table look-ups with ``cv2.LUT``)."""
-        top = self.n_levels - 1
-        if np.ndim(level) == 0:
-            k = int(np.clip(int(level) + shift, 0, top))
-            s = np.float32(2.0**-k)
-            ox, oy = self.level_origin_px[k]
-            mx = (uf + np.float32(0.5)) * s + (ox - np.float32(0.5))
-            my = (vf + np.float32(0.5)) * s + (oy - np.float32(0.5))
-            return mx.astype(np.float32, copy=False), my.astype(np.float32, copy=False)
-        lv = np.asarray(level)
-        if lv.dtype != np.uint8:
-            lv = np.clip(lv, 0, top).astype(np.uint8)
-        scale, ox_lut, oy_lut = self._luts[shift] if shift in self._luts else self._level_luts(shift)
-        mx = uf + np.float32(0.5)
-        mx *= cv2.LUT(lv, scale)
-        mx += cv2.LUT(lv, ox_lut)
-        my = vf + np.float32(0.5)
-        my *= cv2.LUT(lv, scale)
-        my += cv2.LUT(lv, oy_lut)
-        return mx, my
+        :meth:`fold_texel`) at mip ``level``, clipped to the pyramid (see :attr:`level_tables`)."""
+        k = int(np.clip(int(level), 0, self.n_levels - 1))
+        scale, ox, oy = self.level_tables
+        mx = (uf + np.float32(0.5)) * scale[k] + ox[k]
+        my = (vf + np.float32(0.5)) * scale[k] + oy[k]
+        return mx.astype(np.float32, copy=False), my.astype(np.float32, copy=False)
 
     @functools.cached_property
-    def _luts(self) -> dict[int, tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.float32]]]:
-        return {0: self._level_luts(0), 1: self._level_luts(1)}
-
-    def _level_luts(self, shift: int) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.float32]]:
-        """256-entry tables by level: scale 2**-k, atlas x - 0.5 and atlas y - 0.5 of level k = clip(level+shift)."""
-        k = np.clip(np.arange(256) + shift, 0, self.n_levels - 1)
-        scale = np.exp2(-k).astype(np.float32)
-        ox = (self.level_origin_px[k, 0] - 0.5).astype(np.float32)
-        oy = (self.level_origin_px[k, 1] - 0.5).astype(np.float32)
-        return scale, ox, oy
+    def level_tables(self) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.float32]]:
+        """Per mip level ``k`` (float32, read-only): the scale ``2**-k`` and the atlas x and y of level ``k``'s texel
+        (0, 0) minus half a texel, so that a folded level-0 coordinate ``u`` samples atlas x
+        ``(u + 0.5) * scale[k] + x[k]`` (the renderer's kernels read the same tables)."""
+        k = np.arange(self.n_levels)
+        tables = (np.exp2(-k).astype(np.float32), (self.level_origin_px[k, 0] - 0.5).astype(np.float32),
+                  (self.level_origin_px[k, 1] - 0.5).astype(np.float32))
+        for t in tables:
+            t.setflags(write=False)
+        return tables
 
     @functools.cached_property
     def mean_intensity(self) -> float:

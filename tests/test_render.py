@@ -8,7 +8,8 @@ import pytest
 
 from gsoe.rotation import R_nb_from_euler
 from sim.render import CameraRenderer
-from sim.textures import TEXTURE_DIR, TEXTURE_NAMES, GroundWorld, intensity_from_bgr, read_bgr
+from sim.render_kernels import _mirror_fold
+from sim.textures import TEXTURE_DIR, TEXTURE_NAMES, GroundWorld, intensity_from_bgr, mirror_wrap, read_bgr
 
 MARKER_BG_DN = 230.0  # bright ground with a dark marker: the sky (200 DN) is never mistaken for the marker
 MARKER_DN = 20.0
@@ -186,6 +187,17 @@ def test_noise_is_seeded_and_has_the_requested_std(town_renderer):
     bright = town_renderer.render(pos, R_nb, gain=1.2)
     ok = clean < 200
     np.testing.assert_allclose(bright[ok], np.rint(1.2 * clean[ok]), atol=1)
+
+
+def test_compiled_mirror_fold_is_the_textures_fold():
+    """The renderer kernel's scalar fold is sim.textures.mirror_wrap (the tile's definition), edges included."""
+    rng = np.random.default_rng(2)
+    size = 56
+    u = np.concatenate([rng.uniform(-5000.0, 5000.0, 2000), np.arange(-3 * size, 3 * size + 1) - 0.5])
+    ref = mirror_wrap(u, size)
+    got = np.array([_mirror_fold(float(x), size) for x in u])
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-9)
+    assert got.min() >= -0.5 and got.max() <= size - 0.5
 
 
 def test_world_is_the_mirror_tiled_tile():
