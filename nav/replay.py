@@ -50,11 +50,12 @@ EKF profile (:data:`REPLAY_EKF_PROFILE`, on top of ``[ekf]``; the ``[replay.ekf]
     interpolated through turns; with the simulator's 0.05 the filter rejected 14 % of the ALFA log's GNSS
     velocities.  ``wind_rw_m_s_per_rt_s = 0.02``: ArduPilot's EKF2/EKF3 add ``(dt * WIND_P_NSE)^2`` of wind variance
     per 10-12 ms step (``WIND_P_NSE`` 0.1-0.2 m/s^2), a random walk of about 0.01-0.02 m/s/sqrt(s): the autopilot
-    estimates the *steady* wind, and the replay estimates the same quantity to compare with it (the default 0.35
-    follows turbulence); for the same reason the Gauss-Markov turbulence on top of the mean wind is off
+    estimates the *steady* wind, and the replay estimates the same quantity to compare with it (the simulator's
+    default follows turbulence).  For the same reason the Gauss-Markov turbulence on top of the mean wind is off
     (``wind_turb_sigma_m_s = wind_turb_sigma_min_m_s = 0.001``, ``wind_turb_adapt_time_s = 0``: the wind state is
     one random walk, as in ArduPilot; with the simulator's 1.5 m/s turbulence the replayed wind followed every gust
-    and differed from the autopilot's by 1.5 m/s RMS).  ``tas_sigma_m_s = 1.0``: with a steady wind the gusts are airspeed noise (ArduPilot uses 1.4);
+    and differed from the autopilot's by 1.5 m/s RMS).  ``tas_sigma_m_s = 1.0``: with a steady wind the gusts are
+    airspeed noise (ArduPilot uses 1.4);
     1.0 gives a mean airspeed NIS of about 1 on the ALFA engine-failure log.
     GNSS samples are moved back by ``replay.gnss_delay_s`` (0.2 s, ArduPilot's default GPS lag): logged fixes carry
     the time they reached the autopilot; on the ALFA log the wind triangle ``v_gnss - tas * heading`` varies least
