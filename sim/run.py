@@ -295,16 +295,18 @@ def run_flight(scn: Scenario, *, seed: int, duration_s: float | None = None, out
             if r.imu is not None:
                 est.push_imu(r.imu)
                 last_imu_t_us = r.imu.t_us
-                _write("imu", {"t_us": r.imu.t_us, "gyro_x_rad_s": r.imu.gyro_b_rad_s[0],
-                               "gyro_y_rad_s": r.imu.gyro_b_rad_s[1], "gyro_z_rad_s": r.imu.gyro_b_rad_s[2],
-                               "accel_x_m_s2": r.imu.accel_b_m_s2[0], "accel_y_m_s2": r.imu.accel_b_m_s2[1],
-                               "accel_z_m_s2": r.imu.accel_b_m_s2[2]})
+                if runlog is not None:      # (the record is not even built without a log: the per-step path)
+                    runlog.write("imu", {"t_us": r.imu.t_us, "gyro_x_rad_s": r.imu.gyro_b_rad_s[0],
+                                         "gyro_y_rad_s": r.imu.gyro_b_rad_s[1], "gyro_z_rad_s": r.imu.gyro_b_rad_s[2],
+                                         "accel_x_m_s2": r.imu.accel_b_m_s2[0], "accel_y_m_s2": r.imu.accel_b_m_s2[1],
+                                         "accel_z_m_s2": r.imu.accel_b_m_s2[2]})
             if r.ahrs is not None:
                 est.push_attitude(r.ahrs)
                 last_att = r.ahrs
                 last_att_t_us = r.ahrs.t_us
-                _write("attitude", {"t_us": r.ahrs.t_us, "roll_rad": r.ahrs.roll_rad, "pitch_rad": r.ahrs.pitch_rad,
-                                    "yaw_rad": r.ahrs.yaw_rad})
+                if runlog is not None:
+                    runlog.write("attitude", {"t_us": r.ahrs.t_us, "roll_rad": r.ahrs.roll_rad,
+                                              "pitch_rad": r.ahrs.pitch_rad, "yaw_rad": r.ahrs.yaw_rad})
             t0 = timers.add("gsoe", t0)
             if ekf is not None and r.imu is not None and last_att is not None:
                 # the attitude the optical frames use too: AHRS latency removed, noise averaged (gsoe.attitude)
