@@ -28,7 +28,6 @@ from typing import Any
 import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial.transform import Rotation
 
 from gsoe.camera import CameraModel
 from sim.render_kernels import blend_add, ground_maps, to_dn
@@ -220,7 +219,7 @@ class CameraRenderer:
             p = pos + vel * dt
             if p[2] >= 0:
                 raise ValueError("the camera crosses the ground plane during the exposure")
-            self._add_pose(p, R @ Rotation.from_rotvec(rates * dt).as_matrix(), box, acc)
+            self._add_pose(p, R @ cv2.Rodrigues(rates * dt)[0], box, acc)   # (scipy's Rotation: 30 us a call)
         acc *= np.float32(1.0 / n)
         return acc
 
