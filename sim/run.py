@@ -90,7 +90,9 @@ class _Series:
         "t_s", "drift", "heading", "released", "ws", "wd", "gs")})
     ekf: dict[str, list[float]] = field(default_factory=lambda: {k: [] for k in (
         "t_s", "drift", "drift_sigma", "wn", "we", "wn_sigma", "we_sigma", "ws", "wd", "n", "e", "n_sigma",
-        "e_sigma", "valid", "nees", "heading")})
+        "e_sigma", "valid", "heading", "vn", "ve")})
+    #: per EKF record: the 6x6 covariance of [pos_ne, vel_ne, wind_ne] (the NEES is computed after the flight)
+    ekf_cov_pvw: list[np.ndarray] = field(default_factory=list)
     gnss: dict[str, list[float]] = field(default_factory=lambda: {k: [] for k in ("t_s", "n", "e", "ok")})
     gsd: dict[str, list[float]] = field(default_factory=lambda: {k: [] for k in ("t_s", "gsd")})
     steps_valid: int = 0
@@ -104,6 +106,7 @@ class _Series:
             n = min(len(v) for v in cols.values())
             for v in cols.values():
                 del v[n:]
+        del self.ekf_cov_pvw[len(self.ekf["t_s"]):]
 
     def arrays(self, name: str) -> dict[str, np.ndarray]:
         return {k: np.asarray(v, dtype=float) for k, v in getattr(self, name).items()}
@@ -424,37 +427,31 @@ def _record_frame(series: _Series, tr: TruthState, ekf: NavEkf | None, e: NavEst
     E["e_sigma"].append(float(e.pos_ne_sigma_m[1]))
     E["valid"].append(float(e.valid))
     E["heading"].append(e.heading_rad)
-    E["nees"].append(_nees(e, series))
+    E["vn"].append(float(e.vel_ned_m_s[0]))
+    E["ve"].append(float(e.vel_ned_m_s[1]))
+    series.ekf_cov_pvw.append(e.cov_pvw)
     if runlog is not None:
         runlog.write("ekf", e.as_record())
         for st in ekf.status().values():
             runlog.write("aid_status", st.as_record())
 
 
-def _nees(e: NavEstimate, series: _Series) -> float:
-    """NEES of [pos_ne, vel_ne, wind_ne] against the truth at the estimate's own time."""
-    T = series.truth
-    t = T["t_s"]
-    if not t:
-        return math.nan
-    t_q = e.t_us / US_PER_S
-    i = len(t) - 1
-    while i > 0 and t[i] > t_q:
-        i -= 1
-    j = min(i + 1, len(t) - 1)
-    w = 0.0 if j == i or t[j] == t[i] else (t_q - t[i]) / (t[j] - t[i])
-
-    def at(key: str) -> float:
-        return (1 - w) * T[key][i] + w * T[key][j]
-
-    truth = np.array([at("n"), at("e"), at("vn"), at("ve"), at("wn"), at("we")])
-    est = np.array([e.pos_ne_m[0], e.pos_ne_m[1], e.vel_ned_m_s[0], e.vel_ned_m_s[1], e.wind_ne_m_s[0],
-                    e.wind_ne_m_s[1]])
-    err = est - truth
-    try:
-        return float(err @ np.linalg.solve(e.cov_pvw, err))
-    except np.linalg.LinAlgError:
-        return math.nan
+def _nees(E: dict[str, np.ndarray], T: dict[str, np.ndarray], cov_pvw: list[np.ndarray]) -> np.ndarray:
+    """NEES of every EKF record's [pos_ne, vel_ne, wind_ne] against the truth interpolated to the record's own time
+    (NaN where the covariance is singular)."""
+    n = E["t_s"].size
+    if n == 0 or T["t_s"].size == 0:
+        return np.full(n, math.nan)
+    t = E["t_s"]
+    err = np.stack([E[k] - np.interp(t, T["t_s"], T[tk]) for k, tk in
+                    (("n", "n"), ("e", "e"), ("vn", "vn"), ("ve", "ve"), ("wn", "wn"), ("we", "we"))], axis=1)
+    P = np.asarray(cov_pvw[:n], dtype=float)
+    out = np.full(n, math.nan)
+    ok = np.isfinite(P).all(axis=(1, 2)) & np.isfinite(err).all(axis=1)
+    ok[ok] = np.linalg.det(P[ok]) > 0.0
+    if ok.any():
+        out[ok] = np.einsum("ij,ij->i", err[ok], np.linalg.solve(P[ok], err[ok][..., None])[..., 0])
+    return out
 
 
 def compute_metrics(series: _Series, outages: list[tuple[float, float]]) -> dict[str, Any]:
@@ -462,6 +459,7 @@ def compute_metrics(series: _Series, outages: list[tuple[float, float]]) -> dict
     T = series.arrays("truth")
     B = series.arrays("baseline")
     E = series.arrays("ekf")
+    E["nees"] = _nees(E, T, series.ekf_cov_pvw)
     G = series.arrays("gnss")
     out: dict[str, Any] = {}
     if T["t_s"].size < 2:
