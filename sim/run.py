@@ -443,8 +443,7 @@ def _nees(E: dict[str, np.ndarray], T: dict[str, np.ndarray], cov_pvw: list[np.n
     if n == 0 or T["t_s"].size == 0:
         return np.full(n, math.nan)
     t = E["t_s"]
-    err = np.stack([E[k] - np.interp(t, T["t_s"], T[tk]) for k, tk in
-                    (("n", "n"), ("e", "e"), ("vn", "vn"), ("ve", "ve"), ("wn", "wn"), ("we", "we"))], axis=1)
+    err = np.stack([E[k] - np.interp(t, T["t_s"], T[k]) for k in ("n", "e", "vn", "ve", "wn", "we")], axis=1)
     P = np.asarray(cov_pvw[:n], dtype=float)
     out = np.full(n, math.nan)
     ok = np.isfinite(P).all(axis=(1, 2)) & np.isfinite(err).all(axis=1)
