@@ -246,6 +246,12 @@ class CycleConfig:
     whose vector differs from the previous one by more than that (Euclidean).  The previous step is carried into
     the next cycle (rotated to its base heading), so the first match of a cycle is checked too.  Physically the
     per-frame step changes by ``a dt^2 / gsd``: under 0.1 px for a 1 g turn at 50 m and 30 Hz.
+
+    Featureless ground (water, even grass, snow): a base image whose intensity standard deviation is below
+    ``match.texture_std_min`` starts no cycle (every template of the cycle shows ground inside it, so would be
+    invalid for the same reason), and no new base is tried for ``featureless_retry_s`` (0: every frame): the
+    ground moves a small fraction of the base's footprint meanwhile, and a companion computer over the sea stops
+    sampling and matching every frame for nothing.
     """
 
     rate_hz: float = 30.0
@@ -254,6 +260,7 @@ class CycleConfig:
     data_filter: bool = True
     data_filter_zeta_px: float = 4.0
     step_gate_px: float = 2.0
+    featureless_retry_s: float = 0.1
 
     def __post_init__(self) -> None:
         in_range(self.rate_hz, 1.0, 240.0, "rate_hz")
@@ -261,6 +268,7 @@ class CycleConfig:
         in_range(self.max_cycle_s, 0.05, 60.0, "max_cycle_s")
         in_range(self.data_filter_zeta_px, 0.0, 100.0, "data_filter_zeta_px")
         in_range(self.step_gate_px, 0.0, 100.0, "step_gate_px")
+        in_range(self.featureless_retry_s, 0.0, 10.0, "featureless_retry_s")
 
 
 @dataclass(frozen=True)

@@ -24,6 +24,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -98,8 +99,14 @@ class GsoeEstimator:
         self._roll_lim = math.radians(s.roll_limit_deg)
         self._pitch_lim = math.radians(s.pitch_limit_deg)
         self._max_cycle_us = int(cfg.cycle.max_cycle_s * US_PER_S)
+        self._featureless_retry_us = int(round(cfg.cycle.featureless_retry_s * US_PER_S))
         self._cycle: _Cycle | None = None
         self._next_id = 0
+        # featureless ground: no new base before this time (see CycleConfig)
+        self._retry_after_us: int | None = None
+        self.featureless = False
+        """Whether the last base tried was featureless (no cycle runs until the ground shows texture)."""
+        self.n_featureless_bases = 0
 
     @property
     def focal_px(self) -> float:
@@ -160,6 +167,8 @@ class GsoeEstimator:
             return []
         c = self._cycle
         if c is None:
+            if self._retry_after_us is not None and t_us < self._retry_after_us:
+                return []
             return self._start(t_us, image, att, height_agl_m)
         rel = self.buffer.relative_rotation(c.base_t_us, t_us, self.cfg.stab.use_gyro)
         q_nb = quat.mul(c.q_nb0, rel) if rel is not None else att
@@ -227,6 +236,13 @@ class GsoeEstimator:
         patch = self.vcam.sample_base(image, quat.to_matrix(att), yaw0)
         if not patch.valid:
             return []
+        if self._is_featureless(patch.image):
+            self.featureless = True
+            self.n_featureless_bases += 1
+            self._retry_after_us = t_us + self._featureless_retry_us
+            return []
+        self.featureless = False
+        self._retry_after_us = None
         h_ok = math.isfinite(height_agl_m) and height_agl_m > 0
         c = _Cycle(cycle_id=self._next_id, base_t_us=t_us, base_yaw_rad=yaw0, q_nb0=att, base_image=patch.image,
                    height_agl_m=height_agl_m if h_ok else math.nan,
@@ -236,6 +252,11 @@ class GsoeEstimator:
         self._cycle = c
         q = MatchQuality(psr=math.inf, texture_std=float(np.std(patch.image)), ssd_per_px=0.0, valid=True)
         return [self._step(t_us, c, self.ref_uv, q, True, yaw0, quat.IDENTITY, new_cycle=True)]
+
+    def _is_featureless(self, base: NDArray[np.float32]) -> bool:
+        """Whether the whole base image is too flat to match a template in (its intensity standard deviation below
+        the matcher's ``match.texture_std_min``: every template of the cycle comes from ground inside it)."""
+        return float(cv2.meanStdDev(base)[1][0, 0]) < self.cfg.match.texture_std_min
 
     def _step(self, t_us: int, c: _Cycle, xy: tuple[float, float], q: MatchQuality, valid: bool, yaw_rad: float,
               rel: Quat | None, new_cycle: bool = False) -> GsoeStep:

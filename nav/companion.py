@@ -415,6 +415,8 @@ class Estimator:
     def frame(self, t_us: int, gray: NDArray[np.uint8]) -> list[GsoeStep]:
         h = self.last_estimate.height_agl_m if self.last_estimate is not None else self._height_from_baro()
         steps = self.gsoe.process_frame(t_us, gray, float(h))
+        if not steps and self.gsoe.featureless:
+            self._recent_valid.append(False)     # featureless ground: no cycle runs, a frame without a match
         for st in steps:
             if not st.new_cycle:
                 self._recent_valid.append(bool(st.valid))

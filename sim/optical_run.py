@@ -29,6 +29,7 @@ class OpticalRun:
     truth_at_step: list[TruthState] = field(default_factory=list)
     truth_at_base: list[TruthState] = field(default_factory=list)
     frames: int = 0
+    featureless_bases: int = 0   # bases the estimator found featureless (no cycle started)
 
 
 def fly_optical(flight: ScriptedFlight, cfg: GsoeConfig, camera: CameraModel, renderer: CameraRenderer, *,
@@ -66,4 +67,5 @@ def fly_optical(flight: ScriptedFlight, cfg: GsoeConfig, camera: CameraModel, re
             out.truth_at_base.append(truth_by_t[s.base_t_us])
         out.frames += 1
         t_frame += 1.0 / rate_hz
+    out.featureless_bases = est.n_featureless_bases
     return out

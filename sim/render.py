@@ -17,7 +17,11 @@ and gives the same pixels as a full-frame render.
 Options per frame: exposure-time motion blur (the mean of :data:`MOTION_BLUR_SUBSAMPLES` sub-renders spread
 over the exposure, position advanced by ``vel_ned_m_s * dt`` and attitude by ``rates_b_rad_s * dt``; the pose
 given is the one at mid-exposure), a gain (brightness change) and additive Gaussian sensor noise drawn from the
-caller's generator, then rounding to uint8.
+caller's generator, then rounding to uint8.  The noise is drawn by inverse-transform sampling from a table
+(:data:`NOISE_TABLE_SIZE` equiprobable quantiles of the standard normal, scaled to unit variance; one 16-bit
+uniform integer per pixel), four times faster than ``Generator.standard_normal``: it was a quarter of a region's
+render time.  The table's quantisation (1/65536 of probability) and its tails (cut at 4.3 sigma, 2e-5 of the
+samples) do not show once the intensity is rounded to whole DN.
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ from typing import Any
 import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.special import ndtri
 
 from gsoe.camera import CameraModel
 from sim.render_kernels import blend_add, ground_maps, to_dn
@@ -41,6 +46,8 @@ MOTION_BLUR_SUBSAMPLES = 5
 # motion's length convolved with the one-pixel triangle every render has (0.5 px spacing cost twice the renders,
 # about a quarter of a Monte Carlo run's time with long exposures, for the same pixels to within the noise).
 BLUR_PX_PER_SUBSAMPLE = 1.0
+# Lenses whose per-pixel ray tables are kept (a process renders with one or two).
+PIXEL_TABLE_CACHE_SIZE = 2
 # Intensity (DN, 0-255) and colour (BGR) of rays that miss the ground.
 SKY_INTENSITY_DN = 200.0
 SKY_COLOR_BGR = (235.0, 206.0, 135.0)
@@ -54,7 +61,21 @@ ROTATION_TOL = 1e-6
 _DN_MAX = 255.0
 
 Roi = tuple[int, int, int, int]
-_NO_NOISE = np.zeros((0, 0), np.float32)
+_NO_NOISE = np.zeros((0, 0), np.uint16)
+# Entries of the sensor-noise table: the standard normal's quantiles at the midpoints of 2**16 equal-probability
+# bins, indexed by uniform uint16 draws.
+NOISE_TABLE_SIZE = 1 << 16
+
+
+def _normal_table() -> NDArray[np.float32]:
+    q = ndtri((np.arange(NOISE_TABLE_SIZE) + 0.5) / NOISE_TABLE_SIZE)
+    q /= math.sqrt(float(np.mean(q * q)))      # exactly unit variance (the mean is 0 by symmetry)
+    table = q.astype(np.float32)
+    table.setflags(write=False)
+    return table
+
+
+_NOISE_TABLE = _normal_table()
 
 
 _EYE3 = np.eye(3)
@@ -86,6 +107,37 @@ def _nonneg(value: float, name: str, *, positive: bool = False) -> float:
     return float(value)
 
 
+_PIXEL_TABLES: dict[tuple[Any, ...], tuple[NDArray[np.float32], NDArray[np.float32]]] = {}
+
+
+def _pixel_tables(camera: CameraModel) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """Read-only per-pixel tables of a lens, kept for the last :data:`PIXEL_TABLE_CACHE_SIZE` lenses (keyed on the
+    model, size and intrinsics, all they depend on): unit camera rays (h, w, 3) and log2 of the angle a pixel
+    subtends (the larger of its two sides, from the rays through its edge midpoints)."""
+    w, h = camera.size_px
+    key = (camera.model, w, h, camera.K.tobytes(), camera.D.tobytes())
+    if key in _PIXEL_TABLES:
+        return _PIXEL_TABLES[key]
+    rows, cols = np.mgrid[0:h, 0:w].astype(np.float64)
+    px = np.column_stack([cols.ravel(), rows.ravel()])
+    rays = np.ascontiguousarray(camera.unproject(px).reshape(h, w, 3), dtype=np.float32)
+    half = np.array([0.5, 0.0])
+
+    def side_angle(offset: NDArray[np.float64]) -> NDArray[np.float64]:
+        a = camera.unproject(px - offset)
+        b = camera.unproject(px + offset)
+        return np.arctan2(np.linalg.norm(np.cross(a, b), axis=1), np.sum(a * b, axis=1))
+
+    pixel_angle = np.maximum(side_angle(half), side_angle(half[::-1])).reshape(h, w)
+    log2_angle = np.log2(pixel_angle).astype(np.float32)
+    for arr in (rays, log2_angle):
+        arr.setflags(write=False)
+    while len(_PIXEL_TABLES) >= PIXEL_TABLE_CACHE_SIZE:
+        del _PIXEL_TABLES[next(iter(_PIXEL_TABLES))]
+    _PIXEL_TABLES[key] = (rays, log2_angle)
+    return rays, log2_angle
+
+
 class CameraRenderer:
     """Renders raw frames of ``camera`` over ``world``.
 
@@ -107,23 +159,9 @@ class CameraRenderer:
         self.mipmap = bool(mipmap)
         w, h = camera.size_px
         self.width_px, self.height_px = w, h
-        rows, cols = np.mgrid[0:h, 0:w].astype(np.float64)
-        px = np.column_stack([cols.ravel(), rows.ravel()])
-        rays = camera.unproject(px).reshape(h, w, 3)
-        # Unit rays per pixel in the camera frame (h, w, 3) float32, rotated per pose by one cv2.transform.
-        self._rays_c = np.ascontiguousarray(rays, dtype=np.float32)
-        # Angle subtended by each pixel (the larger of its two sides), from rays through its edge midpoints.
-        half = np.array([0.5, 0.0])
-
-        def side_angle(offset: NDArray[np.float64]) -> NDArray[np.float64]:
-            a = camera.unproject(px - offset)
-            b = camera.unproject(px + offset)
-            return np.arctan2(np.linalg.norm(np.cross(a, b), axis=1), np.sum(a * b, axis=1))
-
-        pixel_angle = np.maximum(side_angle(half), side_angle(half[::-1])).reshape(h, w)
-        self._log2_pixel_angle = np.log2(pixel_angle).astype(np.float32)
-        for arr in (self._rays_c, self._log2_pixel_angle):
-            arr.setflags(write=False)
+        # Unit rays per pixel in the camera frame (h, w, 3) float32 and log2 of the angle each pixel subtends; the
+        # same for every renderer of this lens (a Monte Carlo worker builds one per flight), so computed once.
+        self._rays_c, self._log2_pixel_angle = _pixel_tables(camera)
 
     # ------------------------------------------------------------------------------------------------ helpers
     def _check_roi(self, roi: Roi | None) -> Roi:
@@ -265,9 +303,9 @@ class CameraRenderer:
         z = _NO_NOISE
         if noise > 0:
             assert rng is not None
-            z = rng.standard_normal(img.shape, dtype=np.float32)
+            z = rng.integers(0, NOISE_TABLE_SIZE, img.shape, dtype=np.uint16)
         x0, y0, x1, y1 = box
-        to_dn(img, g, z, noise, out[y0:y1, x0:x1])
+        to_dn(img, g, z, _NOISE_TABLE, noise, out[y0:y1, x0:x1])
         return out
 
     def render_color(self, pos_ned_m: ArrayLike, R_nb: ArrayLike, *, roi: Roi | None = None) -> NDArray[np.uint8]:

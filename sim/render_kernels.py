@@ -110,17 +110,17 @@ def blend_add(a: NDArray[np.uint8], b: NDArray[np.uint8], frac: NDArray[np.float
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def to_dn(acc: NDArray[np.float32], scale: float, noise: NDArray[np.float32], noise_std: float,
-          out: NDArray[np.uint8]) -> None:
-    """``out = rint(clip(acc * scale + noise_std * noise, 0, 255))`` (``noise`` may be empty when ``noise_std``
-    is 0)."""
+def to_dn(acc: NDArray[np.float32], scale: float, noise_idx: NDArray[np.uint16], noise_table: NDArray[np.float32],
+          noise_std: float, out: NDArray[np.uint8]) -> None:
+    """``out = rint(clip(acc * scale + noise_std * noise_table[noise_idx], 0, 255))`` (``noise_idx`` may be empty
+    when ``noise_std`` is 0)."""
     h, w = acc.shape
     use_noise = noise_std > 0.0
     for i in range(h):
         for j in range(w):
             x = acc[i, j] * scale
             if use_noise:
-                x += noise_std * noise[i, j]
+                x += noise_std * noise_table[noise_idx[i, j]]
             if x < 0.0:
                 x = 0.0
             elif x > 255.0:

@@ -22,14 +22,15 @@ import logging
 import math
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 
-from fusion.config import ekf_config_from_raw
+from fusion.config import EkfConfig, ekf_config_from_raw
 from fusion.ekf import NavEkf, NavEstimate
 from gsoe.angles import angle_diff
 from gsoe.baseline import PaperBaseline
@@ -65,6 +66,22 @@ OUTAGE_END_GUARD_S = 0.5
 # NEES state: position N/E, velocity N/E, wind N/E.
 NEES_DOF = 6
 US_PER_S = 1_000_000
+# Least pitot scale uncertainty the EKF is given (fraction): even a perfectly calibrated pitot reads the 3-D air
+# speed, which in turbulence exceeds the horizontal air speed the filter models by about
+# (sigma_lateral^2 + sigma_vertical^2) / (2 V), some 0.5 % (fusion.config.EkfConfig, init_tas_scale_sigma).
+TAS_SCALE_SIGMA_FLOOR = 0.005
+
+
+def ekf_config_for_scenario(cfg: EkfConfig, scn: Scenario, raw_ekf: Mapping[str, Any]) -> EkfConfig:
+    """The EKF configuration a flight of ``scn`` uses: ``cfg`` with the pitot's calibration uncertainty
+    (``init_tas_scale_sigma``) taken from the scenario's airspeed sensor (the standard deviation its scale error is
+    drawn from, at least :data:`TAS_SCALE_SIGMA_FLOOR`), as an integrator writes the calibration quality of the
+    pitot they installed into the configuration.  A value set in the configuration file's ``[ekf]`` wins."""
+    if "init_tas_scale_sigma" in raw_ekf:
+        return cfg
+    sigma = max(float(scn.sensors.airspeed.scale_error_std), TAS_SCALE_SIGMA_FLOOR)
+    log.debug("EKF pitot scale prior %.4f from the scenario's airspeed sensor", sigma)
+    return replace(cfg, init_tas_scale_sigma=sigma)
 
 
 def wind_params(scn: Scenario) -> WindParams:
@@ -96,7 +113,6 @@ class _Series:
     gnss: dict[str, list[float]] = field(default_factory=lambda: {k: [] for k in ("t_s", "n", "e", "ok")})
     gsd: dict[str, list[float]] = field(default_factory=lambda: {k: [] for k in ("t_s", "gsd")})
     steps_valid: int = 0
-    steps_total: int = 0
     cycle_figure: dict[str, Any] | None = None
 
     def trim(self) -> None:
@@ -187,7 +203,8 @@ def run_flight(scn: Scenario, *, seed: int, duration_s: float | None = None, out
     wall0 = time.perf_counter()
     base_cfg, raw = load_gsoe_config(config_path)
     gcfg = gsoe_config_for(scn, base_cfg)
-    ekf_cfg = ekf_config_from_raw(raw.get("ekf", {}))
+    raw_ekf = raw.get("ekf", {})
+    ekf_cfg = ekf_config_for_scenario(ekf_config_from_raw(raw_ekf), scn, raw_ekf)
     # The physical camera is the configuration's camera file; the estimator uses the scenario's view of it
     # (``camera.gsoe_overrides.camera``), so a Monte Carlo run can give the estimator a calibration error.
     camera = CameraModel.from_config(gcfg.camera)
@@ -246,7 +263,6 @@ def run_flight(scn: Scenario, *, seed: int, duration_s: float | None = None, out
             t0 = timers.add("gsoe", t0)
             frames += 1
             for s in steps:
-                series.steps_total += 1
                 series.steps_valid += int(s.valid and not s.new_cycle)
                 _write("gsoe", _step_record(s))
                 _capture_cycle(s)
@@ -376,7 +392,7 @@ def run_flight(scn: Scenario, *, seed: int, duration_s: float | None = None, out
         scenario=scn.name, seed=seed, frames=frames, sim_s=truth.t_s, wall_s=wall,
         realtime_factor=truth.t_s / wall if wall > 0 else math.nan,
         time_split_s={k: round(v, 3) for k, v in timers.s.items()}, interrupted=interrupted, crashed=crashed,
-        optical_valid_frac=series.steps_valid / max(1, series.steps_total),
+        optical_valid_frac=series.steps_valid / max(1, frames),   # frames with a valid match
         gyro_bias_true_deg_s=np.degrees(sensors.imu.gyro_bias_b_rad_s).tolist(),
         gyro_bias_est_deg_s=np.degrees(est.buffer.gyro_bias_b_rad_s).tolist(),
         sensor_errors=sensors.errors.to_dict(),

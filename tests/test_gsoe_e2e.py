@@ -99,12 +99,47 @@ def test_gyro_composed_rotation_beats_two_noisy_attitudes(gsoe_config, camera, r
     assert maes[False] > 2.0 * maes[True], maes
 
 
-def test_uniform_ground_gives_invalid_matches_not_confident_answers(gsoe_config, camera):
+def test_uniform_ground_gives_no_confident_answers_and_is_reported_featureless(gsoe_config, camera):
     renderer = CameraRenderer(camera, GroundWorld.from_name("uniform_grass", seed=1))
     flight = ScriptedFlight([Segment(2.0)], tas_m_s=20.0, height_m=100.0)
     run = fly_optical(flight, gsoe_config, camera, renderer)
-    matches = [s for s in run.steps if not s.new_cycle]
-    assert matches and all(not s.valid for s in matches)
+    assert not any(s.valid for s in run.steps if not s.new_cycle)
+    # every base is featureless, so no cycle runs; a base is tried every featureless_retry_s (0.1 s: 3 frames)
+    frames_per_try = math.ceil(gsoe_config.cycle.featureless_retry_s * 30.0 - 1e-9)
+    assert abs(run.featureless_bases - run.frames / frames_per_try) <= 1.0, (run.featureless_bases, run.frames)
+    every = dataclasses.replace(gsoe_config, cycle=dataclasses.replace(gsoe_config.cycle, featureless_retry_s=0.0))
+    run0 = fly_optical(flight, every, camera, renderer)
+    assert run0.featureless_bases == run0.frames and not run0.steps
+
+
+def _feed_level(est: GsoeEstimator, k_from: int, k_to: int) -> None:
+    """Level, still attitude and zero rates at 300 Hz, samples k_from <= k < k_to (t = k / 300 s)."""
+    for k in range(k_from, k_to):
+        t_us = int(round(k * 1e6 / 300.0))
+        est.push_imu(ImuSample(t_us, np.zeros(3), np.array([0.0, 0.0, -9.81])))
+        est.push_attitude(AttitudeSample(t_us, 0.0, 0.0, 0.3))
+
+
+def test_featureless_base_starts_no_cycle_and_texture_is_retried_after_the_interval(gsoe_config, camera):
+    """Ten frames of flat ground, then texture: bases are tried at frames 0, 3, 6, 9 (every 0.1 s at 30 Hz) and
+    none starts a cycle; the textured ground starts one at frame 12, the first try after frame 9's."""
+    est = GsoeEstimator(gsoe_config, camera)
+    w, h = camera.size_px
+    flat = np.full((h, w), 120, np.uint8)
+    textured = np.random.default_rng(3).integers(0, 256, (h, w), dtype=np.uint8)
+    first_cycle, fed = None, 0
+    for k in range(16):
+        t_us = 500_000 + int(round(k * 1e6 / 30.0))
+        upto = t_us * 300 // 1_000_000 + 2          # attitude samples up to just past the exposure
+        _feed_level(est, fed, upto)
+        fed = upto
+        steps = est.process_frame(t_us, flat if k < 10 else textured, 100.0)
+        if k < 10:
+            assert steps == [] and est.featureless, k
+        if first_cycle is None and any(s.new_cycle for s in steps):
+            first_cycle = k
+    assert est.n_featureless_bases == 4
+    assert first_cycle == 12 and not est.featureless
 
 
 @pytest.mark.parametrize("known", [True, False])

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import cv2
 import numpy as np
 import pytest
@@ -285,3 +287,24 @@ def test_render_cli_writes_png(tmp_path, capsys):
     assert main(["render", "--texture", "noise", "--alt-m", "0", "--out", str(out)]) == 2
     assert "--alt-m" in capsys.readouterr().err
     assert main(["render", "--texture", "noise", "--out", str(tmp_path / "x.jpg")]) == 2
+
+
+def test_sensor_noise_is_gaussian_with_the_requested_sigma(camera):
+    """The table-sampled noise on flat ground: standard deviation, the normal's 1-, 2- and 3-sigma fractions and
+    tails (scipy's normal CDF as the truth), and seeded reproducibility."""
+    from scipy.stats import norm
+
+    renderer = CameraRenderer(camera, GroundWorld.from_name("uniform_grass", seed=1))
+    pos, roi = np.array([0.0, 0.0, -100.0]), (200, 100, 600, 500)
+    clean = renderer.render_intensity(pos, np.eye(3), roi=roi)
+    sigma = 6.0
+    imgs = [renderer.render(pos, np.eye(3), roi=roi, noise_std=sigma, rng=np.random.default_rng(s)) for s in (1, 2)]
+    x0, y0, x1, y1 = roi
+    z = np.concatenate([(im[y0:y1, x0:x1].astype(np.float64) - clean).ravel() for im in imgs]) / sigma
+    # rounding to whole DN adds a uniform(-0.5, 0.5) DN error: variance 1/12 DN^2
+    assert np.std(z) == pytest.approx(math.sqrt(1.0 + 1.0 / (12 * sigma**2)), rel=0.01)
+    for k in (1.0, 2.0, 3.0):
+        assert np.mean(np.abs(z) <= k) == pytest.approx(norm.cdf(k) - norm.cdf(-k), abs=0.005), k
+    assert np.mean(np.abs(z) > 4.0) < 3.0 * 2.0 * norm.sf(4.0)
+    again = renderer.render(pos, np.eye(3), roi=roi, noise_std=sigma, rng=np.random.default_rng(1))
+    np.testing.assert_array_equal(again, imgs[0])
