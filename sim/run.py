@@ -524,6 +524,11 @@ def compute_metrics(series: _Series, outages: list[tuple[float, float]]) -> dict
             out[f"{prefix}wind_speed_rmse_vs_steady_m_s"] = M.rmse(
                 ws[settled] - np.interp(t_q[settled], T["t_s"], steady_speed))
             out[f"{prefix}wind_speed_mae_m_s"] = float(np.mean(np.abs(ws[settled] - true_ws)))
+            # the same against the instantaneous total wind, and the floor of the windowed truth: what an estimate
+            # equal to the instantaneous wind would score against it (the turbulence inside the window)
+            inst_ws = np.interp(t_q[settled], T["t_s"], np.hypot(T["wn"], T["we"]))
+            out[f"{prefix}wind_speed_rmse_vs_inst_m_s"] = M.rmse(ws[settled] - inst_ws)
+            out[f"{prefix}wind_speed_truth_floor_m_s"] = M.rmse(inst_ws - true_ws)
             strong = true_ws >= 1.0
             dir_err = np.degrees(np.asarray(angle_diff(wd[settled][strong], true_wd[strong])))
             out[f"{prefix}wind_dir_rmse_deg"] = M.rmse(dir_err) if strong.any() else math.nan
