@@ -22,15 +22,14 @@ import logging
 import math
 import time
 from collections import deque
-from collections.abc import Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 
-from fusion.config import EkfConfig, ekf_config_from_raw
+from fusion.config import ekf_config_from_raw
 from fusion.ekf import NavEkf, NavEstimate
 from gsoe.angles import angle_diff
 from gsoe.baseline import PaperBaseline
@@ -66,22 +65,6 @@ OUTAGE_END_GUARD_S = 0.5
 # NEES state: position N/E, velocity N/E, wind N/E.
 NEES_DOF = 6
 US_PER_S = 1_000_000
-# Least pitot scale uncertainty the EKF is given (fraction): even a perfectly calibrated pitot reads the 3-D air
-# speed, which in turbulence exceeds the horizontal air speed the filter models by about
-# (sigma_lateral^2 + sigma_vertical^2) / (2 V), some 0.5 % (fusion.config.EkfConfig, init_tas_scale_sigma).
-TAS_SCALE_SIGMA_FLOOR = 0.005
-
-
-def ekf_config_for_scenario(cfg: EkfConfig, scn: Scenario, raw_ekf: Mapping[str, Any]) -> EkfConfig:
-    """The EKF configuration a flight of ``scn`` uses: ``cfg`` with the pitot's calibration uncertainty
-    (``init_tas_scale_sigma``) taken from the scenario's airspeed sensor (the standard deviation its scale error is
-    drawn from, at least :data:`TAS_SCALE_SIGMA_FLOOR`), as an integrator writes the calibration quality of the
-    pitot they installed into the configuration.  A value set in the configuration file's ``[ekf]`` wins."""
-    if "init_tas_scale_sigma" in raw_ekf:
-        return cfg
-    sigma = max(float(scn.sensors.airspeed.scale_error_std), TAS_SCALE_SIGMA_FLOOR)
-    log.debug("EKF pitot scale prior %.4f from the scenario's airspeed sensor", sigma)
-    return replace(cfg, init_tas_scale_sigma=sigma)
 
 
 def wind_params(scn: Scenario) -> WindParams:
@@ -203,8 +186,7 @@ def run_flight(scn: Scenario, *, seed: int, duration_s: float | None = None, out
     wall0 = time.perf_counter()
     base_cfg, raw = load_gsoe_config(config_path)
     gcfg = gsoe_config_for(scn, base_cfg)
-    raw_ekf = raw.get("ekf", {})
-    ekf_cfg = ekf_config_for_scenario(ekf_config_from_raw(raw_ekf), scn, raw_ekf)
+    ekf_cfg = ekf_config_from_raw(raw.get("ekf", {}))
     # The physical camera is the configuration's camera file; the estimator uses the scenario's view of it
     # (``camera.gsoe_overrides.camera``), so a Monte Carlo run can give the estimator a calibration error.
     camera = CameraModel.from_config(gcfg.camera)

@@ -172,17 +172,3 @@ def test_ctrl_c_leaves_a_readable_partial_log(tmp_path):
     truth = read_log(tmp_path / "truth.csv")
     assert truth["t_us"].size > 10 and np.all(np.isfinite(truth["t_us"]))
 
-
-def test_ekf_pitot_prior_is_the_scenario_pitots_spec_unless_configured():
-    """The simulator tells the EKF the calibration quality of the pitot it flies (the standard deviation its scale
-    error is drawn from), at least the turbulence floor; a value in the configuration's [ekf] wins."""
-    from fusion.config import EkfConfig
-    from sim.run import TAS_SCALE_SIGMA_FLOOR, ekf_config_for_scenario
-
-    base = load_scenario("paper_sil")
-    for spec, expect in ((0.04, 0.04), (0.02, 0.02), (0.0, TAS_SCALE_SIGMA_FLOOR)):
-        scn = scenario_with_overrides(base, {"sensors.airspeed.scale_error_std": spec})
-        assert ekf_config_for_scenario(EkfConfig(), scn, {}).init_tas_scale_sigma == pytest.approx(expect)
-    scn = scenario_with_overrides(base, {"sensors.airspeed.scale_error_std": 0.04})
-    cfg = EkfConfig(init_tas_scale_sigma=0.01)
-    assert ekf_config_for_scenario(cfg, scn, {"init_tas_scale_sigma": 0.01}).init_tas_scale_sigma == 0.01
