@@ -236,7 +236,10 @@ class GsoeEstimator:
         patch = self.vcam.sample_base(image, quat.to_matrix(att), yaw0)
         if not patch.valid:
             return []
-        if self._is_featureless(patch.image):
+        # the base's texture, once: it decides whether a cycle can run (the matcher's own criterion; every template
+        # of the cycle shows ground inside the base) and labels the base step
+        texture_std = float(cv2.meanStdDev(patch.image)[1][0, 0])
+        if texture_std < self.cfg.match.texture_std_min:
             self.featureless = True
             self.n_featureless_bases += 1
             self._retry_after_us = t_us + self._featureless_retry_us
@@ -250,13 +253,8 @@ class GsoeEstimator:
                    step=0, last_xy=self.ref_uv, last_step_xy=None, n_valid=0)
         self._next_id += 1
         self._cycle = c
-        q = MatchQuality(psr=math.inf, texture_std=float(np.std(patch.image)), ssd_per_px=0.0, valid=True)
+        q = MatchQuality(psr=math.inf, texture_std=texture_std, ssd_per_px=0.0, valid=True)
         return [self._step(t_us, c, self.ref_uv, q, True, yaw0, quat.IDENTITY, new_cycle=True)]
-
-    def _is_featureless(self, base: NDArray[np.float32]) -> bool:
-        """Whether the whole base image is too flat to match a template in (its intensity standard deviation below
-        the matcher's ``match.texture_std_min``: every template of the cycle comes from ground inside it)."""
-        return float(cv2.meanStdDev(base)[1][0, 0]) < self.cfg.match.texture_std_min
 
     def _step(self, t_us: int, c: _Cycle, xy: tuple[float, float], q: MatchQuality, valid: bool, yaw_rad: float,
               rel: Quat | None, new_cycle: bool = False) -> GsoeStep:

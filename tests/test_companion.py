@@ -308,24 +308,19 @@ def test_fuzz_10k_frames_and_telemetry_samples_never_crash_nor_send_invalid_valu
 def test_optical_quality_falls_to_zero_over_featureless_ground(gsoe_config, camera):
     """Over textured ground the matches are valid; over flat ground no cycle runs, and the quality the ground
     station sees falls to 0 instead of keeping the last textured value."""
-    from gsoe.types import AttitudeSample, ImuSample
     from nav.companion import Estimator, companion_config_from_raw
     from nav.configfile import load_gsoe_config
+    from tests.still_camera import still_frames
 
     raw = load_gsoe_config()[1]
     est = Estimator(gsoe_config, camera, raw, companion_config_from_raw(raw), clock=lambda: 0)
     w, h = camera.size_px
     textured = np.random.default_rng(5).integers(0, 256, (h, w), dtype=np.uint8)
     flat = np.full((h, w), 90, np.uint8)
-    fed = 0
-    for k in range(90):
-        t_us = 500_000 + int(round(k * 1e6 / 30.0))
-        upto = t_us * 300 // 1_000_000 + 2
-        for j in range(fed, upto):  # level and still: the same textured view each frame, a perfect match
-            tj = int(round(j * 1e6 / 300.0))
-            est.attitude(AttitudeSample(tj, 0.0, 0.0, 0.3))
-            est.imu(ImuSample(tj, np.zeros(3), np.array([0.0, 0.0, -9.81])))
-        fed = upto
+    for k, t_us, samples in still_frames(90):   # level and still: the same textured view, a perfect match
+        for att, imu in samples:
+            est.attitude(att)
+            est.imu(imu)
         est.frame(t_us, textured if k < 45 else flat)
         if k == 44:
             assert est.quality > 0.9

@@ -17,6 +17,7 @@ from sim.optical_run import OpticalRun, fly_optical
 from sim.render import CameraRenderer
 from sim.textures import GroundWorld
 from sim.trajectory import ScriptedFlight, Segment
+from tests.still_camera import still_frames
 
 TURN_RATE_RAD_S = math.radians(30.0)
 
@@ -112,14 +113,6 @@ def test_uniform_ground_gives_no_confident_answers_and_is_reported_featureless(g
     assert run0.featureless_bases == run0.frames and not run0.steps
 
 
-def _feed_level(est: GsoeEstimator, k_from: int, k_to: int) -> None:
-    """Level, still attitude and zero rates at 300 Hz, samples k_from <= k < k_to (t = k / 300 s)."""
-    for k in range(k_from, k_to):
-        t_us = int(round(k * 1e6 / 300.0))
-        est.push_imu(ImuSample(t_us, np.zeros(3), np.array([0.0, 0.0, -9.81])))
-        est.push_attitude(AttitudeSample(t_us, 0.0, 0.0, 0.3))
-
-
 def test_featureless_base_starts_no_cycle_and_texture_is_retried_after_the_interval(gsoe_config, camera):
     """Ten frames of flat ground, then texture: bases are tried at frames 0, 3, 6, 9 (every 0.1 s at 30 Hz) and
     none starts a cycle; the textured ground starts one at frame 12, the first try after frame 9's."""
@@ -127,12 +120,11 @@ def test_featureless_base_starts_no_cycle_and_texture_is_retried_after_the_inter
     w, h = camera.size_px
     flat = np.full((h, w), 120, np.uint8)
     textured = np.random.default_rng(3).integers(0, 256, (h, w), dtype=np.uint8)
-    first_cycle, fed = None, 0
-    for k in range(16):
-        t_us = 500_000 + int(round(k * 1e6 / 30.0))
-        upto = t_us * 300 // 1_000_000 + 2          # attitude samples up to just past the exposure
-        _feed_level(est, fed, upto)
-        fed = upto
+    first_cycle = None
+    for k, t_us, samples in still_frames(16):
+        for att, imu in samples:
+            est.push_imu(imu)
+            est.push_attitude(att)
         steps = est.process_frame(t_us, flat if k < 10 else textured, 100.0)
         if k < 10:
             assert steps == [] and est.featureless, k

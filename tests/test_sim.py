@@ -171,4 +171,3 @@ def test_ctrl_c_leaves_a_readable_partial_log(tmp_path):
     assert m["interrupted"] is True and 0 < m["sim_s"] < 2000
     truth = read_log(tmp_path / "truth.csv")
     assert truth["t_us"].size > 10 and np.all(np.isfinite(truth["t_us"]))
-
