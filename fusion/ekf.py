@@ -42,7 +42,8 @@ Prediction
     and delay Jacobians included; tests check it), so the covariance rate is a free choice: the covariance is
     predicted at most every ``predict_period_s`` while only IMU samples arrive, and once at the stamp of a
     measurement (all measurements with one stamp share it).  Process noise from :class:`~fusion.config.EkfConfig`
-    (white acceleration on each NED axis, random walks on the slow states).  The wind is a walking mean
+    (white acceleration on each NED axis, plus the attitude's dynamic error ``att_time_noise_s_per_rt_hz`` times
+    ``|omega x f|`` summed over the samples, random walks on the slow states).  The wind is a walking mean
     ``wind_mean_ne`` plus first-order Gauss-Markov turbulence: over a prediction of ``dt`` the total wind relaxes as
     ``wind' = e wind + (1 - e) wind_mean`` (``e = exp(-dt / wind_turb_corr_time_s)``) with the turbulence's noise
     ``sigma^2 (1 - e^2)``; ``sigma^2`` is estimated in flight (``wind_turb_adapt_time_s``) from the estimated
@@ -86,7 +87,10 @@ Partial-update (Schmidt) airspeed scale
     +5 % against a true -3.9 %, the wind 1.4 m/s off); a near-fixed scale prior instead (0.3 %) made the wind
     sigma ignore a 2-4 % pitot error (0.4-0.8 m/s of headwind at 20 m/s).  With the calibration's prior (2 %) and
     a small fraction the pitot error is in the wind sigma and the airspeed innovation variance, and a constant
-    scale is still learnt over a few minutes of turns in smooth air.
+    scale is still learnt over a few minutes of turns in smooth air.  The fraction follows the in-flight turbulence
+    level: ``tas_scale_update_fraction_calm`` while the adapted turbulence sigma is at most
+    ``tas_scale_calm_turb_sigma_m_s``, falling as ``sigma^-2`` above it to no less than
+    ``tas_scale_update_fraction`` (set at each airspeed sample when it has changed by more than 10 %).
 
 Gating replaces the paper's data filter (eq. 6) and integrity filter (2.7): a bad match is rejected by its NIS (or
 by its quality verdict), the clone is kept, and the next steps of the cycle are measured against the same base.
@@ -141,6 +145,10 @@ COV_RESET_REL_TOL = 1e-9
 #: Process-noise matrices kept per prediction length (µs); the cache is emptied when it grows beyond this (the
 #: lengths are few when samples come on a clock grid, arbitrary in replays of jittery logs).
 Q_CACHE_MAX = 256
+
+#: Relative change of the airspeed scale's turbulence-dependent update fraction that is applied (smaller changes
+#: keep the partial-update structure as it is).
+SCALE_FRACTION_REL_STEP = 0.1
 
 #: ``|cos(pitch)|`` below which the 3-2-1 yaw rate is undefined (pitch within 0.06 deg of +-90 deg) and taken as 0.
 MIN_COS_PITCH = 1e-3
@@ -773,6 +781,7 @@ class NavEkf:
         # sum dt t_mid, sum (w x f) dt (3), sum (w x f) dt t_mid (3) (rotated into _acc when the attitude changes or
         # the covariance is predicted)
         self._seg = [0.0] * _SEG_LEN
+        self._wf2 = 0.0                   # sum |omega x f|^2 dt since the last covariance prediction
         self._seg_open = False
         # specific force (FRD) and gyro rate x specific force of the last IMU sample
         self._f_held: tuple[float, float, float, float, float, float] | None = None
@@ -1059,6 +1068,7 @@ class NavEkf:
         n_fused = row.n_fused
         gap = False
         fx = fy = fz = wx = wy = wz = gx = gy = gz = 0.0
+        wf2 = self._wf2
         t = t_in
         while q and q[0][0] <= t_end:
             t, fx, fy, fz, gx, gy, gz, att = q.popleft()
@@ -1097,17 +1107,21 @@ class NavEkf:
                 s11 += ax * mid
                 s12 += ay * mid
                 s13 += az * mid
+                wf2 += (wx * wx + wy * wy + wz * wz) * dt
                 opened = True
                 t_in = t
                 if t_in - t_x >= period_us:
                     self._seg = [s0, s1, s2, s3, s4, s5, s6, s7, s8, s9, s10, s11, s12, s13]
                     self._seg_open, self._t_in_us = opened, t_in
+                    self._wf2 = wf2
                     self._flush()
+                    wf2 = 0.0
                     s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = s8 = s9 = s10 = s11 = s12 = s13 = 0.0
                     opened = False
                     t_x = self._t_x_us
         self._seg = [s0, s1, s2, s3, s4, s5, s6, s7, s8, s9, s10, s11, s12, s13]
         self._seg_open, self._t_in_us = opened, t_in
+        self._wf2 = wf2
         self._att = a0
         if n_fused == row.n_fused:
             return
@@ -1180,6 +1194,13 @@ class NavEkf:
             self._kf.predict(u=ImuIncrement(T_us * S_PER_US, a[0:3], [a[6:9], a[9:12], a[12:15]], a[3:6],
                                             [a[15:18], a[18:21], a[21:24]], a[24:27], a[27:30]))
             self._acc = [0.0] * _ACC_LEN
+            if self._wf2 > 0.0 and self.cfg.att_time_noise_s_per_rt_hz > 0.0:
+                # the attitude's dynamic (timing) error: sum |omega x f|^2 dt of the samples, per NED axis
+                qd = self.cfg.att_time_noise_s_per_rt_hz**2 * self._wf2
+                P = self._kf.P
+                for i in _I_VEL:
+                    P[i, i] += qd
+            self._wf2 = 0.0
             self._est = None
             self._t_x_us = self._t_in_us
 
@@ -1390,6 +1411,13 @@ class NavEkf:
             self._reset_wind(tas)
             self._st["airspeed"].set(t, reason=REASON_WIND_RESET)
             return
+        if c.tas_scale_update_fraction_calm != c.tas_scale_update_fraction:
+            # the scale's update fraction follows the turbulence level (see the module docstring)
+            calm = c.tas_scale_calm_turb_sigma_m_s**2 / max(self._kf.turb_var, 1e-12)
+            g = max(c.tas_scale_update_fraction_calm * min(1.0, calm), c.tas_scale_update_fraction)
+            g_now = float(self._gain_scale[S.tas_scale.start])
+            if abs(g - g_now) > SCALE_FRACTION_REL_STEP * g_now:
+                self._set_scale_fraction(g)
         z_hat, h = TrueAirspeed.row(self._kf.x)
         self._fuse1(self._st["airspeed"], t, z_hat, h, tas, self._r_tas, c.gate_airspeed_nis)
         if c.sideslip_fusion:
