@@ -28,15 +28,7 @@ class EkfConfig:
 
     Process noise
         ``accel_noise_m_s2_per_rt_hz``: white acceleration noise driving the velocity (IMU noise, vibration, AHRS
-        attitude noise times g), per NED axis.  ``att_time_noise_s_per_rt_hz``: the AHRS attitude's dynamic error
-        as white noise on its time stamp (the fast part of the ``att_delay`` state): the specific force is rotated
-        with an attitude off by ``dt``, which moves ``R f`` by ``R (omega x f) dt``, so each IMU sample adds
-        ``(att_time_noise_s_per_rt_hz |omega x f|)^2 dt`` to the velocity variance (per NED axis).  The noise then
-        follows the manoeuvre: small in straight flight, larger in turns and in turbulence.  With 0.05 m/s^2 and no
-        dynamic term the filter was sized for turbulence everywhere, and its dead-reckoning sigma over featureless
-        ground grew 3-4 times faster than the errors; on 32 recorded Monte Carlo runs 0.02 + 0.01 s gave drift MAE
-        median 0.232 -> 0.211 deg and the worst dead reckoning 6.3 -> 4.7 % (0.02 alone: 11.7 % in severe
-        turbulence, NEES in bounds 0.46 in that run).
+        attitude noise times g, AHRS latency in turns), per NED axis.
         The wind state ``wind_ne`` is the total wind the aircraft flies in: a mean ``wind_mean_ne`` that walks
         with ``wind_rw_m_s_per_rt_s`` (weather, shear with height, slow gust trains) plus first-order
         Gauss-Markov turbulence ``wind_ne - wind_mean_ne`` of standard deviation ``wind_turb_sigma_m_s`` (m/s,
@@ -129,8 +121,7 @@ class EkfConfig:
     """
 
     # process noise
-    accel_noise_m_s2_per_rt_hz: float = 0.02
-    att_time_noise_s_per_rt_hz: float = 0.01
+    accel_noise_m_s2_per_rt_hz: float = 0.05
     accel_bias_rw_m_s2_per_rt_s: float = 1e-3
     wind_rw_m_s_per_rt_s: float = 0.05
     wind_turb_sigma_m_s: float = 1.5
@@ -248,7 +239,6 @@ class EkfConfig:
             in_range(getattr(self, name), lo, hi, name)
         nonneg = {
             "accel_bias_rw_m_s2_per_rt_s": 1.0,
-            "att_time_noise_s_per_rt_hz": 1.0,
             "wind_rw_m_s_per_rt_s": 10.0,
             "yaw_bias_rw_deg_per_rt_s": 10.0,
             "opt_rot_rw_deg_per_rt_s": 10.0,

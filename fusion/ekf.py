@@ -42,8 +42,7 @@ Prediction
     and delay Jacobians included; tests check it), so the covariance rate is a free choice: the covariance is
     predicted at most every ``predict_period_s`` while only IMU samples arrive, and once at the stamp of a
     measurement (all measurements with one stamp share it).  Process noise from :class:`~fusion.config.EkfConfig`
-    (white acceleration on each NED axis, plus the attitude's dynamic error ``att_time_noise_s_per_rt_hz`` times
-    ``|omega x f|`` summed over the samples, random walks on the slow states).  The wind is a walking mean
+    (white acceleration on each NED axis, random walks on the slow states).  The wind is a walking mean
     ``wind_mean_ne`` plus first-order Gauss-Markov turbulence: over a prediction of ``dt`` the total wind relaxes as
     ``wind' = e wind + (1 - e) wind_mean`` (``e = exp(-dt / wind_turb_corr_time_s)``) with the turbulence's noise
     ``sigma^2 (1 - e^2)``; ``sigma^2`` is estimated in flight (``wind_turb_adapt_time_s``) from the estimated
@@ -781,7 +780,6 @@ class NavEkf:
         # sum dt t_mid, sum (w x f) dt (3), sum (w x f) dt t_mid (3) (rotated into _acc when the attitude changes or
         # the covariance is predicted)
         self._seg = [0.0] * _SEG_LEN
-        self._wf2 = 0.0                   # sum |omega x f|^2 dt since the last covariance prediction
         self._seg_open = False
         # specific force (FRD) and gyro rate x specific force of the last IMU sample
         self._f_held: tuple[float, float, float, float, float, float] | None = None
@@ -1068,7 +1066,6 @@ class NavEkf:
         n_fused = row.n_fused
         gap = False
         fx = fy = fz = wx = wy = wz = gx = gy = gz = 0.0
-        wf2 = self._wf2
         t = t_in
         while q and q[0][0] <= t_end:
             t, fx, fy, fz, gx, gy, gz, att = q.popleft()
@@ -1107,21 +1104,17 @@ class NavEkf:
                 s11 += ax * mid
                 s12 += ay * mid
                 s13 += az * mid
-                wf2 += (wx * wx + wy * wy + wz * wz) * dt
                 opened = True
                 t_in = t
                 if t_in - t_x >= period_us:
                     self._seg = [s0, s1, s2, s3, s4, s5, s6, s7, s8, s9, s10, s11, s12, s13]
                     self._seg_open, self._t_in_us = opened, t_in
-                    self._wf2 = wf2
                     self._flush()
-                    wf2 = 0.0
                     s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = s8 = s9 = s10 = s11 = s12 = s13 = 0.0
                     opened = False
                     t_x = self._t_x_us
         self._seg = [s0, s1, s2, s3, s4, s5, s6, s7, s8, s9, s10, s11, s12, s13]
         self._seg_open, self._t_in_us = opened, t_in
-        self._wf2 = wf2
         self._att = a0
         if n_fused == row.n_fused:
             return
@@ -1194,13 +1187,6 @@ class NavEkf:
             self._kf.predict(u=ImuIncrement(T_us * S_PER_US, a[0:3], [a[6:9], a[9:12], a[12:15]], a[3:6],
                                             [a[15:18], a[18:21], a[21:24]], a[24:27], a[27:30]))
             self._acc = [0.0] * _ACC_LEN
-            if self._wf2 > 0.0 and self.cfg.att_time_noise_s_per_rt_hz > 0.0:
-                # the attitude's dynamic (timing) error: sum |omega x f|^2 dt of the samples, per NED axis
-                qd = self.cfg.att_time_noise_s_per_rt_hz**2 * self._wf2
-                P = self._kf.P
-                for i in _I_VEL:
-                    P[i, i] += qd
-            self._wf2 = 0.0
             self._est = None
             self._t_x_us = self._t_in_us
 
