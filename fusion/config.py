@@ -71,14 +71,6 @@ class EkfConfig:
         either wind model; +1 % in light turbulence with a true ~0): the untracked 3-D turbulence makes the measured
         airspeed exceed ``|v - wind|`` on every heading by about ``(sigma_lateral^2 + sigma_vertical^2) / (2 V)`` (0.1
         m/s, 0.5 %), and the near-degenerate scale integrates that.
-        So the fraction follows the in-flight turbulence level (the adapted turbulence sigma of the wind model):
-        ``tas_scale_update_fraction_calm`` (0-1, default 1) applies while that sigma is at most
-        ``tas_scale_calm_turb_sigma_m_s`` (default 0.35 m/s), and ``calm * (sigma_calm / sigma)^2`` above it, never
-        less than ``tas_scale_update_fraction`` (the fraction in strong turbulence).  In calm air a 7 % pitot error
-        is then learnt within minutes of turns, while in severe turbulence (where the full update ran to +40 % with
-        a true +2.6 %) the scale stays near its prior.  On 32 recorded Monte Carlo runs: wind speed RMSE median
-        0.420 -> 0.384 m/s (0.386 with 0.5 m/s, 0.400 with 0.7), a run with a 7 % pitot error 0.60 -> 0.26 m/s
-        (set calm equal to the turbulent fraction for the earlier fixed fraction).
     Measurement noise (one sigma, used when the sensor does not report its own accuracy)
         ``tas_sigma_m_s`` (true airspeed; includes turbulence), ``sideslip_sigma_deg`` (synthetic zero sideslip,
         fused with every airspeed sample when ``sideslip_fusion``), ``baro_sigma_m``, ``gnss_pos_ne_sigma_m``,
@@ -149,8 +141,6 @@ class EkfConfig:
     init_tas_scale_sigma: float = 0.03
     init_att_delay_sigma_s: float = 0.05
     tas_scale_update_fraction: float = 0.03
-    tas_scale_update_fraction_calm: float = 1.0
-    tas_scale_calm_turb_sigma_m_s: float = 0.35
     # measurement noise
     tas_sigma_m_s: float = 0.5
     tas_min_m_s: float = 6.0
@@ -212,7 +202,6 @@ class EkfConfig:
             "init_att_delay_sigma_s": (1e-5, 1.0),
             "tas_sigma_m_s": (1e-3, 20.0),
             "sideslip_sigma_deg": (1e-3, 90.0),
-            "tas_scale_calm_turb_sigma_m_s": (1e-3, 20.0),
             "baro_sigma_m": (1e-3, 100.0),
             "gnss_pos_ne_sigma_m": (1e-3, 1e3),
             "gnss_pos_d_sigma_m": (1e-3, 1e3),
@@ -247,7 +236,6 @@ class EkfConfig:
             "tas_scale_rw_per_rt_s": 0.1,
             "att_delay_rw_s_per_rt_s": 0.1,
             "tas_scale_update_fraction": 1.0,
-            "tas_scale_update_fraction_calm": 1.0,
             "wind_turb_adapt_time_s": 3600.0,
             "tas_min_m_s": 100.0,
             "gnss_pos_corr_time_s": 3600.0,

@@ -86,10 +86,7 @@ Partial-update (Schmidt) airspeed scale
     +5 % against a true -3.9 %, the wind 1.4 m/s off); a near-fixed scale prior instead (0.3 %) made the wind
     sigma ignore a 2-4 % pitot error (0.4-0.8 m/s of headwind at 20 m/s).  With the calibration's prior (2 %) and
     a small fraction the pitot error is in the wind sigma and the airspeed innovation variance, and a constant
-    scale is still learnt over a few minutes of turns in smooth air.  The fraction follows the in-flight turbulence
-    level: ``tas_scale_update_fraction_calm`` while the adapted turbulence sigma is at most
-    ``tas_scale_calm_turb_sigma_m_s``, falling as ``sigma^-2`` above it to no less than
-    ``tas_scale_update_fraction`` (set at each airspeed sample when it has changed by more than 10 %).
+    scale is still learnt over a few minutes of turns in smooth air.
 
 Gating replaces the paper's data filter (eq. 6) and integrity filter (2.7): a bad match is rejected by its NIS (or
 by its quality verdict), the clone is kept, and the next steps of the cycle are measured against the same base.
@@ -144,10 +141,6 @@ COV_RESET_REL_TOL = 1e-9
 #: Process-noise matrices kept per prediction length (µs); the cache is emptied when it grows beyond this (the
 #: lengths are few when samples come on a clock grid, arbitrary in replays of jittery logs).
 Q_CACHE_MAX = 256
-
-#: Relative change of the airspeed scale's turbulence-dependent update fraction that is applied (smaller changes
-#: keep the partial-update structure as it is).
-SCALE_FRACTION_REL_STEP = 0.1
 
 #: ``|cos(pitch)|`` below which the 3-2-1 yaw rate is undefined (pitch within 0.06 deg of +-90 deg) and taken as 0.
 MIN_COS_PITCH = 1e-3
@@ -1397,13 +1390,6 @@ class NavEkf:
             self._reset_wind(tas)
             self._st["airspeed"].set(t, reason=REASON_WIND_RESET)
             return
-        if c.tas_scale_update_fraction_calm != c.tas_scale_update_fraction:
-            # the scale's update fraction follows the turbulence level (see the module docstring)
-            calm = c.tas_scale_calm_turb_sigma_m_s**2 / max(self._kf.turb_var, 1e-12)
-            g = max(c.tas_scale_update_fraction_calm * min(1.0, calm), c.tas_scale_update_fraction)
-            g_now = float(self._gain_scale[S.tas_scale.start])
-            if abs(g - g_now) > SCALE_FRACTION_REL_STEP * g_now:
-                self._set_scale_fraction(g)
         z_hat, h = TrueAirspeed.row(self._kf.x)
         self._fuse1(self._st["airspeed"], t, z_hat, h, tas, self._r_tas, c.gate_airspeed_nis)
         if c.sideslip_fusion:
