@@ -76,8 +76,9 @@ class EkfConfig:
         m/s, 0.5 %), and the near-degenerate scale integrates that.
         A fraction gated by the adapted turbulence level (1 while sigma <= 0.35 m/s, falling as sigma^-2 to 0.03)
         was measured and not adopted: over the 100-run campaign wind 0.395 -> 0.388 m/s (runs with 4-8 % pitot
-        errors 0.75 -> 0.64), but even with an exact pitot the fully updated scale settles at +2 to +4 % in light
-        air (the bias lies in the filter, not the sensor), and the paper SIL flight's NEES fell from 84 to 78 %.
+        errors 0.75 -> 0.64), but even with an exact pitot the fully updated scale settled at +2.6 to +4 % in three
+        light-turbulence runs (the bias lies in the filter, not the sensor), and the paper SIL flight's NEES fell
+        from 84 to 78 %.
     Measurement noise (one sigma, used when the sensor does not report its own accuracy)
         ``tas_sigma_m_s`` (true airspeed; includes turbulence), ``sideslip_sigma_deg`` (synthetic zero sideslip,
         fused with every airspeed sample when ``sideslip_fusion``), ``baro_sigma_m``, ``gnss_pos_ne_sigma_m``,
