@@ -24,7 +24,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -34,7 +33,7 @@ from gsoe.attitude import US_PER_S, AttitudeBuffer
 from gsoe.camera import CameraModel
 from gsoe.config import GsoeConfig
 from gsoe.integrity import data_filter_fires
-from gsoe.matching import match_template
+from gsoe.matching import match_template, texture_std
 from gsoe.quat import Quat
 from gsoe.stabilise import Frame, VirtualNadirCamera
 from gsoe.types import AttitudeSample, GsoeStep, ImuSample, MatchQuality
@@ -238,8 +237,8 @@ class GsoeEstimator:
             return []
         # the base's texture, once: it decides whether a cycle can run (the matcher's own criterion; every template
         # of the cycle shows ground inside the base) and labels the base step
-        texture_std = float(cv2.meanStdDev(patch.image)[1][0, 0])
-        if texture_std < self.cfg.match.texture_std_min:
+        base_std = texture_std(patch.image)
+        if base_std < self.cfg.match.texture_std_min:
             self.featureless = True
             self.n_featureless_bases += 1
             self._retry_after_us = t_us + self._featureless_retry_us
@@ -253,7 +252,7 @@ class GsoeEstimator:
                    step=0, last_xy=self.ref_uv, last_step_xy=None, n_valid=0)
         self._next_id += 1
         self._cycle = c
-        q = MatchQuality(psr=math.inf, texture_std=texture_std, ssd_per_px=0.0, valid=True)
+        q = MatchQuality(psr=math.inf, texture_std=base_std, ssd_per_px=0.0, valid=True)
         return [self._step(t_us, c, self.ref_uv, q, True, yaw0, quat.IDENTITY, new_cycle=True)]
 
     def _step(self, t_us: int, c: _Cycle, xy: tuple[float, float], q: MatchQuality, valid: bool, yaw_rad: float,

@@ -144,6 +144,12 @@ def _as_float32(a: NDArray) -> NDArray[np.float32]:
     return np.ascontiguousarray(a, dtype=np.float32)
 
 
+def texture_std(image: NDArray) -> float:
+    """Intensity standard deviation of a single-channel image (DN): the texture criterion of a match
+    (``MatchConfig.texture_std_min``)."""
+    return float(cv2.meanStdDev(image)[1][0, 0])
+
+
 def to_intensity(image: NDArray) -> NDArray[np.float32]:
     """Paper eq. 4: intensity = 0.299 R' + 0.587 G' + 0.114 B', as float32 (no rounding to integers).
 
@@ -366,7 +372,7 @@ def match_template(base: NDArray, template: NDArray, cfg: MatchConfig,
     tpl32 = _as_float32(template)
     if not (math.isfinite(float(base32.sum(dtype=np.float64))) and math.isfinite(float(tpl32.sum(dtype=np.float64)))):
         return _invalid("non-finite pixel values")
-    texture_std = float(cv2.meanStdDev(tpl32)[1][0, 0])
+    tpl_std = texture_std(tpl32)
     exclude = cfg.sidelobe_exclude_px
     floor = th * tw * SSD_FLOOR_PER_PX
 
@@ -402,8 +408,8 @@ def match_template(base: NDArray, template: NDArray, cfg: MatchConfig,
         return _invalid("SSD overflow (pixel values far outside the 0-255 scale)")
     psr, gap = _log_psr_and_gap(surface, lu, lv, exclude, floor)
     on_border = iu == 0 or iv == 0 or iu == nu - 1 or iv == nv - 1
-    valid = (not on_border) and psr >= cfg.psr_min and texture_std >= cfg.texture_std_min and gap >= AMBIGUITY_MIN_GAP
-    quality = MatchQuality(psr=psr, texture_std=texture_std, ssd_per_px=max(ssd_min, 0.0) / (th * tw),
+    valid = (not on_border) and psr >= cfg.psr_min and tpl_std >= cfg.texture_std_min and gap >= AMBIGUITY_MIN_GAP
+    quality = MatchQuality(psr=psr, texture_std=tpl_std, ssd_per_px=max(ssd_min, 0.0) / (th * tw),
                            valid=bool(valid))
     x, y = float(iu), float(iv)
     if cfg.subpixel and not on_border:
