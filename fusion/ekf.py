@@ -1166,6 +1166,7 @@ class NavEkf:
 
     def _set_scale_fraction(self, g: float) -> None:
         """Partial-update fraction ``g`` of the airspeed scale (0: consider state)."""
+        self._scale_fraction = g
         self._gain_scale[S.tas_scale] = g
         part = [(int(i), 1.0 - float(self._gain_scale[i])) for i in np.flatnonzero(self._gain_scale != 1.0)]
         # The Joseph form with the gain K = D K_opt (D = diag(g)), P - K H P - P H' K' + K S K', is P - A o G with
@@ -1393,8 +1394,16 @@ class NavEkf:
             self._reset_wind(tas)
             self._st["airspeed"].set(t, reason=REASON_WIND_RESET)
             return
-        z_hat, h = TrueAirspeed.row(self._kf.x)
-        self._fuse1(self._st["airspeed"], t, z_hat, h, tas, self._r_tas, c.gate_airspeed_nis)
+        kf = self._kf
+        # the scale's fraction follows the turbulence level (full update in calm air; see EkfConfig)
+        g = c.tas_scale_calm_fraction if kf.turb_var <= c.tas_scale_calm_turb_sigma_max_m_s**2 \
+            else c.tas_scale_update_fraction
+        if g != self._scale_fraction:
+            self._set_scale_fraction(g)
+        # the turbulence the wind state does not follow is time-correlated airspeed noise (see EkfConfig)
+        r_tas = self._r_tas + c.tas_turb_noise_factor**2 * kf.turb_var
+        z_hat, h = TrueAirspeed.row(kf.x)
+        self._fuse1(self._st["airspeed"], t, z_hat, h, tas, r_tas, c.gate_airspeed_nis)
         if c.sideslip_fusion:
             if self._Rl is None:
                 self._st["sideslip"].set(t, reason=REASON_NO_ATTITUDE)

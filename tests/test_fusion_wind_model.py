@@ -105,3 +105,80 @@ def test_pitot_scale_is_learnt_in_turns_with_mean_reverting_turbulence(scale_err
     assert scale_gm == pytest.approx(fl.cfg.tas_scale_err, abs=0.02)
     assert abs(scale_gm - fl.cfg.tas_scale_err) < abs(scale_rw - fl.cfg.tas_scale_err)
     assert wind_gm < 0.8 * wind_rw
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Turbulence in the airspeed: time-correlated noise for the 50 Hz airspeed fusion (EkfConfig.tas_turb_noise_factor)
+def test_airspeed_variance_carries_the_turbulence_level():
+    """The airspeed innovation variance is ``h P h' + tas_sigma^2 + (tas_turb_noise_factor sigma_turb)^2`` with the
+    turbulence variance in use (checked against the filter's own P and h before the update)."""
+    cfg = dataclasses.replace(EkfConfig(), fusion_delay_s=0.0, sideslip_fusion=False, wind_turb_adapt_time_s=0.0,
+                              wind_turb_sigma_m_s=1.2)
+    ekf = NavEkf(cfg, t_us=0, pos_ned_m=[0.0, 0.0, -100.0], vel_ned_m_s=[20.0, 0.0, 0.0], wind_ne_m_s=[0.0, 0.0])
+    t = _level_north(ekf, 0, 200_000, None)
+    from fusion.measurements import TrueAirspeed
+
+    _, h = TrueAirspeed.row(ekf.x)
+    hph = float(h @ ekf.P @ h)
+    ekf.fuse_airspeed(t, 20.0)
+    st = ekf.status()["airspeed"]
+    assert st.fused
+    expected = hph + cfg.tas_sigma_m_s**2 + (cfg.tas_turb_noise_factor * 1.2) ** 2
+    assert st.innovation_var[0] == pytest.approx(expected, rel=1e-9)
+
+
+def _correlated_airspeed_flight(tau_s: float, seed: int = 7):
+    """The 300 s turning flight with an exact pitot (scale 0) whose reading carries, besides 0.3 m/s of white noise,
+    a zero-mean first-order Gauss-Markov fluctuation along the air velocity (1 m/s, correlation ``tau_s``): turbulence
+    the wind state cannot follow, as a 50 Hz sensor sees it."""
+    fl = make_flight(TruthConfig(duration_s=300.0, tas_scale_err=0.0, seed=3))
+    rng = np.random.default_rng(seed)
+    tas_t = [e[0] for e in fl.events if e[2] == "tas"]
+    a = math.exp(-(tas_t[1] - tas_t[0]) * 1e-6 / tau_s)
+    x = rng.normal(0.0, 1.0)
+    events = []
+    for e in fl.events:
+        if e[2] == "tas":
+            x = a * x + math.sqrt(1.0 - a * a) * rng.normal(0.0, 1.0)
+            i = fl.index(e[0])
+            air = fl.vel[i] - np.array([*fl.wind[i], 0.0])
+            e = (e[0], e[1], "tas", float(np.linalg.norm(air) + x + rng.normal(0.0, 0.3)))
+        events.append(e)
+    return dataclasses.replace(fl, events=events)
+
+
+def test_time_correlated_airspeed_noise_does_not_walk_the_scale():
+    """Fused as white at 50 Hz, a 1 s correlated airspeed fluctuation walks a fully updated scale far from the true 0
+    (measured +19 %); with the turbulence term in the airspeed variance it stays within a few percent (+2.9 %)."""
+    fl = _correlated_airspeed_flight(1.0)
+    wind = {"wind_rw_m_s_per_rt_s": 0.05, "wind_turb_sigma_m_s": 1.5, "wind_turb_sigma_min_m_s": 0.2,
+            "wind_turb_adapt_time_s": 60.0}
+    cfg_on = filter_config(fl.cfg, init_tas_scale_sigma=0.03, tas_scale_update_fraction=1.0, **wind)
+    cfg_off = dataclasses.replace(cfg_on, tas_turb_noise_factor=0.0)
+    s_on = run_ekf(fl, cfg_on, record_div=600).ekf.estimate().tas_scale
+    s_off = run_ekf(fl, cfg_off, record_div=600).ekf.estimate().tas_scale
+    assert abs(s_on) < 0.05
+    assert abs(s_off) > 2.0 * abs(s_on)
+
+
+def test_scale_fraction_follows_the_turbulence_level():
+    """Full scale updates while the turbulence sigma in use is at most ``tas_scale_calm_turb_sigma_max_m_s``, the
+    slow fraction above: with sigma held at 2 m/s the filter is exactly the one with the calm fraction switched
+    off, and with sigma held at 1 m/s it is not."""
+    fl = make_flight(TruthConfig(duration_s=60.0, tas_scale_err=-0.05, seed=3))
+
+    def state(sigma: float, calm: float):
+        cfg = filter_config(fl.cfg, wind_turb_sigma_m_s=sigma, wind_turb_sigma_min_m_s=sigma,
+                            wind_turb_adapt_time_s=0.0, tas_scale_calm_fraction=calm)
+        return run_ekf(fl, cfg, record_div=600).ekf.x
+
+    off = filter_config(fl.cfg).tas_scale_update_fraction
+    np.testing.assert_array_equal(state(2.0, 1.0), state(2.0, off))
+    assert not np.array_equal(state(1.0, 1.0), state(1.0, off))
+
+
+def test_scale_and_turbulence_noise_config_is_validated():
+    for key, bad in (("tas_scale_calm_fraction", 1.5), ("tas_scale_calm_turb_sigma_max_m_s", -0.1),
+                     ("tas_turb_noise_factor", -1.0)):
+        with pytest.raises(ConfigError, match=f"ekf.{key}"):
+            ekf_config_from_raw({key: bad})
