@@ -766,6 +766,8 @@ class NavEkf:
         P0[np.ix_(_I_POS, _I_CLONE)] = P0[np.ix_(_I_POS, _I_POS)]
         self._kf = _FilterCore(x0, P0, cfg)
         self._t_x_us = int(t_us)           # time of the filter state (the fusion horizon)
+        # the turbulence sigma is a measurement only after one adaptation time: before, calm air is not known
+        self._calm_known_us = int(t_us) + round(cfg.wind_turb_adapt_time_s * US_PER_S)
         self._t_in_us = int(t_us)          # inputs consumed up to here (>= _t_x_us; the rest is accumulated)
         # The covariance prediction being accumulated over [_t_x_us, _t_in_us] (ImuIncrement), as floats: sum R f dt
         # (3), sum R f dt t_mid (3), sum R dt (9, row by row), sum R dt t_mid (9), sum R (w x f) dt (3), sum R (w x f)
@@ -1396,8 +1398,8 @@ class NavEkf:
             return
         kf = self._kf
         # the scale's fraction follows the turbulence level (full update in calm air; see EkfConfig)
-        g = c.tas_scale_calm_fraction if kf.turb_var <= c.tas_scale_calm_turb_sigma_max_m_s**2 \
-            else c.tas_scale_update_fraction
+        calm = t >= self._calm_known_us and kf.turb_var <= c.tas_scale_calm_turb_sigma_max_m_s**2
+        g = c.tas_scale_calm_fraction if calm else c.tas_scale_update_fraction
         if g != self._scale_fraction:
             self._set_scale_fraction(g)
         # the turbulence the wind state does not follow is time-correlated airspeed noise (see EkfConfig)

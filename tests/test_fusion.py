@@ -478,7 +478,7 @@ def test_partial_update_is_the_joseph_form_of_the_scaled_gain():
     """An airspeed update with the partial-update (Schmidt) airspeed scale against the textbook Joseph form
     (I - K H) P (I - K H)' + K R K' with K = D P H' S^-1 (an independent formula), after turns have correlated the
     scale with the wind."""
-    cfg = dataclasses.replace(CFG0, sideslip_fusion=False, tas_scale_update_fraction=0.2)
+    cfg = dataclasses.replace(CFG0, sideslip_fusion=False, tas_scale_update_fraction=0.2, tas_scale_calm_fraction=0.2)
     ekf = NavEkf(cfg, t_us=0, pos_ned_m=[0.0, 0.0, -100.0], vel_ned_m_s=[20.0, 0.0, 0.0], wind_ne_m_s=[1.0, -2.0])
     samples = _turn_samples(400, 5000, math.radians(15.0), 0.5, np.array([0.0, 0.0, -9.80665 / math.cos(0.5)]))
     for k, (imu, att) in enumerate(samples):
@@ -490,7 +490,8 @@ def test_partial_update_is_the_joseph_form_of_the_scaled_gain():
     x, P = ekf.x, ekf.P
     z_hat, h = TrueAirspeed.row(x)
     H = h[None, :]
-    Rm = TrueAirspeed.noise(cfg)
+    # the airspeed variance: the pitot's plus the turbulence's share at the sigma in use
+    Rm = TrueAirspeed.noise(cfg) + (cfg.tas_turb_noise_factor * ekf.wind_turb_sigma_m_s) ** 2
     K = np.diag(np.where(np.arange(S.dim) == S.tas_scale.start, 0.2, 1.0)) @ P @ H.T @ np.linalg.inv(H @ P @ H.T + Rm)
     x_ref = x + K[:, 0] * (20.9 - z_hat)
     I_KH = np.eye(S.dim) - K @ H
