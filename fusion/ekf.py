@@ -446,6 +446,7 @@ _EYE = np.eye(S.dim)
 _EYE.flags.writeable = False
 _I_BA = S.idx("accel_bias_b")
 _I_DELAY = S.att_delay.start
+_I_SCALE = S.tas_scale.start
 # flat indices of the IMU-dependent entries of F, in the order _propagate_into lists them: d pos / d vel (N, E, D),
 # d pos / d accel_bias_b (3 x 3, row by row), d vel / d accel_bias_b, d(pos_n, pos_e, vel_n, vel_e) / d yaw_bias,
 # d pos / d att_delay, d vel / d att_delay
@@ -796,7 +797,6 @@ class NavEkf:
         self._period_us = round(cfg.predict_period_s * US_PER_S)
         self._gap_us = round(cfg.imu_max_gap_s * US_PER_S)
         self._att_age_us = round(cfg.att_max_age_s * US_PER_S)
-        self._r_tas = float(TrueAirspeed.noise(cfg)[0, 0])
         self._r_beta = float(SyntheticSideslip.noise(cfg)[0, 0])
         self._r_baro = float(BaroAltitude.noise(cfg)[0, 0])
         self._clone_cycle: int | None = None
@@ -1168,7 +1168,6 @@ class NavEkf:
 
     def _set_scale_fraction(self, g: float) -> None:
         """Partial-update fraction ``g`` of the airspeed scale (0: consider state)."""
-        self._scale_fraction = g
         self._gain_scale[S.tas_scale] = g
         part = [(int(i), 1.0 - float(self._gain_scale[i])) for i in np.flatnonzero(self._gain_scale != 1.0)]
         # The Joseph form with the gain K = D K_opt (D = diag(g)), P - K H P - P H' K' + K S K', is P - A o G with
@@ -1400,12 +1399,11 @@ class NavEkf:
         # the scale's fraction follows the turbulence level (full update in calm air; see EkfConfig)
         calm = t >= self._calm_known_us and kf.turb_var <= c.tas_scale_calm_turb_sigma_max_m_s**2
         g = c.tas_scale_calm_fraction if calm else c.tas_scale_update_fraction
-        if g != self._scale_fraction:
+        if g != self._gain_scale[_I_SCALE]:
             self._set_scale_fraction(g)
-        # the turbulence the wind state does not follow is time-correlated airspeed noise (see EkfConfig)
-        r_tas = self._r_tas + c.tas_turb_noise_factor**2 * kf.turb_var
         z_hat, h = TrueAirspeed.row(kf.x)
-        self._fuse1(self._st["airspeed"], t, z_hat, h, tas, r_tas, c.gate_airspeed_nis)
+        self._fuse1(self._st["airspeed"], t, z_hat, h, tas, TrueAirspeed.variance(c, kf.turb_var),
+                    c.gate_airspeed_nis)
         if c.sideslip_fusion:
             if self._Rl is None:
                 self._st["sideslip"].set(t, reason=REASON_NO_ATTITUDE)

@@ -192,8 +192,15 @@ class TrueAirspeed:
         return scale * speed, h
 
     @staticmethod
-    def noise(cfg: EkfConfig) -> Mat:
-        return np.array([[cfg.tas_sigma_m_s**2]])
+    def variance(cfg: EkfConfig, turb_var_m2_s2: float = 0.0) -> float:
+        """Measurement variance (m^2/s^2): the pitot's white noise plus the share of the turbulence (variance in use
+        ``turb_var_m2_s2``, per axis) that the wind state does not follow, time-correlated and so weighted down:
+        ``tas_sigma_m_s^2 + tas_turb_noise_factor^2 turb_var`` (see :class:`~fusion.config.EkfConfig`)."""
+        return cfg.tas_sigma_m_s**2 + cfg.tas_turb_noise_factor**2 * turb_var_m2_s2
+
+    @staticmethod
+    def noise(cfg: EkfConfig, turb_var_m2_s2: float = 0.0) -> Mat:
+        return np.array([[TrueAirspeed.variance(cfg, turb_var_m2_s2)]])
 
     @staticmethod
     def wind_from_airspeed(x: Vec, tas_m_s: float, yaw_ahrs_rad: float) -> tuple[Vec, Mat, Vec, Vec]:

@@ -490,8 +490,8 @@ def test_partial_update_is_the_joseph_form_of_the_scaled_gain():
     x, P = ekf.x, ekf.P
     z_hat, h = TrueAirspeed.row(x)
     H = h[None, :]
-    # the airspeed variance: the pitot's plus the turbulence's share at the sigma in use
-    Rm = TrueAirspeed.noise(cfg) + (cfg.tas_turb_noise_factor * ekf.wind_turb_sigma_m_s) ** 2
+    # the airspeed variance: the pitot's plus the turbulence's share at the sigma in use (written out here)
+    Rm = np.array([[cfg.tas_sigma_m_s**2 + (cfg.tas_turb_noise_factor * ekf.wind_turb_sigma_m_s) ** 2]])
     K = np.diag(np.where(np.arange(S.dim) == S.tas_scale.start, 0.2, 1.0)) @ P @ H.T @ np.linalg.inv(H @ P @ H.T + Rm)
     x_ref = x + K[:, 0] * (20.9 - z_hat)
     I_KH = np.eye(S.dim) - K @ H

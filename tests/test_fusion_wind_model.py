@@ -177,6 +177,22 @@ def test_scale_fraction_follows_the_turbulence_level():
     assert not np.array_equal(state(1.0, 1.0), state(1.0, off))
 
 
+def test_scale_fraction_waits_one_adaptation_time():
+    """Calm air is known only once the turbulence sigma has been adapted for ``wind_turb_adapt_time_s``: with an
+    adaptation time longer than the 60 s flight (sigma clamped at a calm 1 m/s) the calm fraction never applies,
+    with 20 s it does."""
+    fl = make_flight(TruthConfig(duration_s=60.0, tas_scale_err=-0.05, seed=3))
+
+    def state(adapt_s: float, calm: float):
+        cfg = filter_config(fl.cfg, wind_turb_sigma_m_s=1.0, wind_turb_sigma_min_m_s=1.0, wind_turb_sigma_max_m_s=1.0,
+                            wind_turb_adapt_time_s=adapt_s, tas_scale_calm_fraction=calm)
+        return run_ekf(fl, cfg, record_div=600).ekf.x
+
+    off = filter_config(fl.cfg).tas_scale_update_fraction
+    np.testing.assert_array_equal(state(100.0, 1.0), state(100.0, off))
+    assert not np.array_equal(state(20.0, 1.0), state(20.0, off))
+
+
 def test_scale_and_turbulence_noise_config_is_validated():
     for key, bad in (("tas_scale_calm_fraction", 1.5), ("tas_scale_calm_turb_sigma_max_m_s", -0.1),
                      ("tas_turb_noise_factor", -1.0)):
