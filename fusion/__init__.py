@@ -6,7 +6,7 @@ Modules
     :mod:`fusion.config`        :class:`~fusion.config.EkfConfig` (``[ekf]`` in ``config/default.toml``): what the
                                 filter assumes; :func:`~fusion.config.ekf_config_from_raw` builds it
     :mod:`fusion.measurements`  one class per measurement: optical displacement (stochastic clone), true airspeed,
-                                synthetic sideslip, baro altitude, GNSS position and velocity
+                                sideslip (side-force or zero), baro altitude, GNSS position and velocity
     :mod:`fusion.ekf`           :class:`~fusion.ekf.NavEkf` (delayed-horizon time handling, gating, status records)
                                 and its output :class:`~fusion.ekf.NavEstimate`
     :mod:`fusion.consistency`   NEES and chi-square intervals

@@ -667,7 +667,9 @@ class _FilterCore(ExtendedKalmanFilter):
             # Where the airspeed cannot split the wind into mean and turbulence, var(d) stays near the sigma^2 in use,
             # which holds sigma up.  Without the var(d) term (measured on 32 recorded Monte Carlo runs): NEES in
             # bounds over featureless ground 0.70-0.72 -> 0.81-0.90 (3 runs), but 0.74 -> 0.61 with a 5.6 % pitot
-            # error, 0.862 -> 0.859 over all, and the paper_sil flight's 84 -> 79 %; so it stays.
+            # error, 0.862 -> 0.859 over all, and the paper_sil flight's 84 -> 79 %; so it stays.  With the side-force
+            # sideslip, half the var(d) term: 0.870 -> 0.874, but from more overconfident steps (above the bound
+            # 5.2 -> 6.8 %, below 7.7 -> 5.7 %); none: 0.855 (10.3 % above); not adopted.
             # Over the prediction the variance moves as
             # v(t) = d2 + (v0 - d2) exp(-t / A), and the noise is the exact integral of v(t) (2 / tau) exp(-2 (dt - t)
             # / tau): d2 (1 - e^2) + (v0 - d2) c, so the result does not depend on the prediction rate.
@@ -783,6 +785,10 @@ class NavEkf:
         # specific force (FRD) and gyro rate x specific force of the last IMU sample
         self._f_held: tuple[float, float, float, float, float, float] | None = None
         self._rates_held = (0.0, 0.0, 0.0)               # body rates of the last IMU sample (rad/s, FRD)
+        # lateral specific force (body y, m/s^2), low-passed over sideslip_accel_tau_s: the side-force sideslip
+        self._lat_f: float | None = None
+        self._lat_rate_per_s = 1.0 / cfg.sideslip_accel_tau_s if cfg.sideslip_accel_tau_s > 0.0 else math.inf
+        self._beta_gain_m = cfg.sideslip_accel_gain_m if cfg.sideslip_fusion else 0.0
         self._att: AttitudeSample | None = None          # AHRS attitude of the last processed IMU sample
         self._att_out: AttitudeSample | None = None      # first pushed attitude (output before any is processed)
         self._Rl: tuple[float, ...] | None = None        # its rotation (body to AHRS-NED), row by row
@@ -901,8 +907,8 @@ class NavEkf:
             self._process_due()
 
     def fuse_airspeed(self, t_us: int, tas_m_s: float) -> None:
-        """Push a true airspeed sample (m/s) measured at ``t_us``; the synthetic zero sideslip is fused with it
-        (``cfg.sideslip_fusion``)."""
+        """Push a true airspeed sample (m/s) measured at ``t_us``; the sideslip pseudo-measurement (side-force
+        sideslip, or zero) is fused with it (``cfg.sideslip_fusion``)."""
         if self._admit("airspeed", t_us, tas_m_s):
             self._push(t_us, "airspeed", float(tas_m_s))
 
@@ -1064,6 +1070,7 @@ class NavEkf:
         n_fused = row.n_fused
         gap = False
         fx = fy = fz = wx = wy = wz = gx = gy = gz = 0.0
+        lat, lat_rate = self._lat_f, self._lat_rate_per_s
         t = t_in
         while q and q[0][0] <= t_end:
             t, fx, fy, fz, gx, gy, gz, att = q.popleft()
@@ -1083,8 +1090,11 @@ class NavEkf:
             dt_us = t - t_in
             gap = dt_us > gap_us and n_fused > 0
             n_fused += 1
+            if lat is None:
+                lat = fy
             if dt_us > 0:
                 dt = dt_us * S_PER_US
+                lat += (fy - lat) * min(1.0, dt * lat_rate)
                 mid = (t + t_in - 2 * t_x) * (0.5 * S_PER_US)
                 ax, ay, az = fx * dt, fy * dt, fz * dt
                 s0 += ax
@@ -1114,6 +1124,7 @@ class NavEkf:
         self._seg = [s0, s1, s2, s3, s4, s5, s6, s7, s8, s9, s10, s11, s12, s13]
         self._seg_open, self._t_in_us = opened, t_in
         self._att = a0
+        self._lat_f = lat
         if n_fused == row.n_fused:
             return
         self._f_held = (fx, fy, fz, wx, wy, wz)
@@ -1413,8 +1424,15 @@ class NavEkf:
                 model = self._beta_model
                 if model is None or model.R_nb_ahrs is not self._R_nb:    # one model per AHRS attitude
                     model = self._beta_model = SyntheticSideslip(self._R_nb)
-                z_hat, h = model.row(self._kf.x)
-                self._fuse1(self._st["sideslip"], t, z_hat, h, 0.0, self._r_beta, c.gate_sideslip_nis)
+                # the side-force sideslip (measured value) from the lateral specific force and the corrected
+                # airspeed; 0 with the model off (zero sideslip)
+                k_beta, z_beta = 0.0, 0.0
+                if self._beta_gain_m and self._lat_f is not None:
+                    v_air = max(tas / (1.0 + float(kf.x[_I_SCALE])), c.tas_min_m_s)
+                    k_beta = self._beta_gain_m / (v_air * v_air)
+                    z_beta = k_beta * self._lat_f
+                z_hat, h = model.row(self._kf.x, k_beta)
+                self._fuse1(self._st["sideslip"], t, z_hat, h, z_beta, self._r_beta, c.gate_sideslip_nis)
 
     def _reset_wind(self, tas: float) -> None:
         """Wind from the wind triangle (:meth:`TrueAirspeed.wind_from_airspeed`) with its covariance

@@ -51,6 +51,7 @@ _VN, _VE, _VD = S.vel_ne.start, S.vel_ne.start + 1, S.vel_d.start
 _WN, _WE = S.wind_ne.start, S.wind_ne.start + 1
 _PD, _YB, _BB, _TH, _TS = S.pos_d.start, S.yaw_bias.start, S.baro_bias.start, S.terrain_h.start, S.tas_scale.start
 _OR = S.opt_rot.start
+_BAY = S.accel_bias_b.start + 1
 # the same indices in the second row of a flattened 2 x n Jacobian
 _N2, _E2, _BN2, _BE2, _BD2, _TH2, _YB2, _OR2 = (S.dim + i for i in (_N, _E, _BN, _BE, _BD, _TH, _YB, _OR))
 
@@ -231,15 +232,24 @@ class TrueAirspeed:
 # --------------------------------------------------------------------------------------------------------------
 @dataclass(frozen=True, slots=True)
 class SyntheticSideslip:
-    """Zero-sideslip pseudo-measurement (rad, small-angle ``v_air_b_y / v_air_b_x``), measured value 0.
+    """Sideslip pseudo-measurement (rad, small-angle ``v_air_b_y / v_air_b_x``).
 
     The air-relative velocity ``[v_ne - wind_ne, v_d]`` is rotated into the body frame with the AHRS attitude
     ``R_nb_ahrs`` corrected by the heading error: ``R_nb = R_z(-yaw_bias) @ R_nb_ahrs``.  In coordinated flight
     the aircraft points into the relative wind, which together with the airspeed makes the wind observable
     without turns.
+
+    The measured value is either 0 (the classic zero-sideslip assumption) or the side-force sideslip
+    ``accel_gain_rad_per_m_s2 * f_y`` from the low-passed lateral specific force ``f_y`` (the airframe's side force
+    ``q S C_Ybeta beta = m f_y``: ``beta = 2 m f_y / (rho S C_Ybeta V^2)``; :attr:`fusion.config.EkfConfig.
+    sideslip_accel_gain_m` over ``V^2``).  The accelerometer's bias is in that reading, so with a non-zero gain the
+    prediction is ``beta(x) + accel_gain_rad_per_m_s2 * accel_bias_y`` (measured ``f_y`` = true + bias).
+    ``accel_gain_rad_per_m_s2`` is an argument of :meth:`row` (it changes with the airspeed of each sample);
+    :meth:`predict`, :meth:`jacobian` and :meth:`linearise` use the field's value.
     """
 
     R_nb_ahrs: Mat
+    accel_gain_rad_per_m_s2: float = 0.0
 
     def _parts(self, x: Vec) -> tuple[float, float, tuple[float, float, float], tuple[float, float, float],
                                       tuple[float, float], tuple[float, float]]:
@@ -260,17 +270,18 @@ class SyntheticSideslip:
 
     def predict(self, x: Vec) -> Vec:
         vbx, vby, _, _, _, _ = self._parts(x)
-        return np.array([vby / max(vbx, MIN_AIR_SPEED_M_S)])
+        return np.array([vby / max(vbx, MIN_AIR_SPEED_M_S) + self.accel_gain_rad_per_m_s2 * float(x[_BAY])])
 
     def jacobian(self, x: Vec) -> Mat:
         return self.linearise(x)[1]
 
     def linearise(self, x: Vec) -> tuple[Vec, Mat]:
-        z, h = self.row(x)
+        z, h = self.row(x, self.accel_gain_rad_per_m_s2)
         return np.array([z]), h[None, :]
 
-    def row(self, x: Vec) -> tuple[float, Vec]:
-        """``(z_hat, h)``: the predicted sideslip (rad) and the Jacobian row (n,)."""
+    def row(self, x: Vec, accel_gain_rad_per_m_s2: float = 0.0) -> tuple[float, Vec]:
+        """``(z_hat, h)``: the predicted sideslip measurement (rad) and the Jacobian row (n,), for a side-force gain
+        ``accel_gain_rad_per_m_s2`` (0: zero sideslip, no accelerometer-bias term)."""
         vbx, vby, bx, by, (wn, we), (c, s) = self._parts(x)
         vx = max(vbx, MIN_AIR_SPEED_M_S)
         gx, gy = -vby / (vx * vx), 1.0 / vx                  # d(vb_y / vb_x) / d(vb_x, vb_y)
@@ -280,6 +291,9 @@ class SyntheticSideslip:
         h = np.zeros(S.dim)
         h[_VN], h[_VE], h[_VD], h[_WN], h[_WE] = dn, de, dw[2], -dn, -de
         h[_YB] = dw[0] * -we + dw[1] * wn                   # d w / d yaw_bias = (-w_E, w_N, 0)
+        if accel_gain_rad_per_m_s2:
+            h[_BAY] = accel_gain_rad_per_m_s2
+            return vby / vx + accel_gain_rad_per_m_s2 * float(x[_BAY]), h
         return vby / vx, h
 
     @staticmethod

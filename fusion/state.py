@@ -56,7 +56,13 @@ Why this set
       gyro-bias filter converges.  Folded into ``yaw_bias`` it drove the AHRS heading correction 2.4 deg the wrong
       way; as its own state, GNSS + IMU + airspeed/sideslip fix ``yaw_bias`` and optical against GNSS fixes
       ``opt_rot``, and both are held through an outage.  (Optical *scale* errors are absorbed by ``terrain_h``,
-      which only the optical model uses.)
+      which only the optical model uses.  An additive height matches a focal-length error at one height only: in
+      the Monte Carlo campaign, with a -2.9 % focal error and heights of 88-163 m, the filter's height ratio went
+      from -2.3 % to -5.3 % as the aircraft climbed and sank.  A multiplicative optical-scale state was measured
+      (32 recorded runs, EKF-only replay): NEES in bounds 0.870 -> 0.871, dead reckoning median 0.232 -> 0.229 %;
+      better where the focal error dominates (0.77 -> 0.97), worse where the fisheye's off-nadir stretch in turns
+      makes the scale it learns overshoot (+6.4 % for a +3 % error: 0.68 -> 0.61), and 2-7 points lower over
+      low-texture ground; not adopted.)
     * ``baro_bias`` and ``terrain_h``: the optical scale is ``height_agl / focal``, so a height error is a velocity
       scale error.  Baro altitude drifts with the weather (``baro_bias``); the ground under the aircraft need not be
       at the reference height (``terrain_h``).  GNSS height separates the two from the true height; the optical

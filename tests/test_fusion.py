@@ -87,6 +87,13 @@ def test_ekf_config_from_file_defaults_and_errors():
         ekf_config_from_raw({"gate_optcal_nis": 3.0})
     with pytest.raises(ConfigError, match="ekf.fusion_delay_s"):
         ekf_config_from_raw({"ekf": {"fusion_delay_s": math.inf}})
+    # the side-force coefficient opposes the sideslip (negative) or is 0 (model off); the airframe must be physical
+    with pytest.raises(ConfigError, match="ekf.sideslip_side_force_coef_per_rad"):
+        ekf_config_from_raw({"ekf": {"sideslip_side_force_coef_per_rad": 0.35}})
+    with pytest.raises(ConfigError, match="ekf.airframe_mass_kg"):
+        ekf_config_from_raw({"ekf": {"airframe_mass_kg": 0.0}})
+    with pytest.raises(ConfigError, match="ekf.air_density_kg_m3"):
+        ekf_config_from_raw({"ekf": {"air_density_kg_m3": math.nan}})
 
 
 def test_fast_rotation_matches_gsoe_rotation():
@@ -102,8 +109,8 @@ def test_measurement_jacobians_match_finite_differences(seed):
     va = x[S.vel_ne] - x[S.wind_ne]
     R_nb = R_nb_from_euler(*rng.uniform(-0.4, 0.4, 2), math.atan2(va[1], va[0]) + rng.uniform(-0.3, 0.3))
     models = [OpticalDisplacement(focal_px=351.86, base_yaw_rad=rng.uniform(-3, 3)), TrueAirspeed(),
-              SyntheticSideslip(R_nb), BaroAltitude(), GnssPosition(3), GnssPosition(2), GnssVelocity(3),
-              GnssVelocity(2)]
+              SyntheticSideslip(R_nb), SyntheticSideslip(R_nb, accel_gain_rad_per_m_s2=-0.1), BaroAltitude(),
+              GnssPosition(3), GnssPosition(2), GnssVelocity(3), GnssVelocity(2)]
     for m in models:
         H = m.jacobian(x)
         z, H2 = m.linearise(x)
@@ -280,6 +287,36 @@ def test_covariance_reset_when_innovation_variance_below_observation_variance():
     ekf.predict(ImuSample(105_000, np.zeros(3), G_DOWN_SPECIFIC_FORCE.copy()), AttitudeSample(105_000, 0, 0, 0))
     ekf.fuse_baro(105_000, 100.0)
     assert ekf.status()["baro"].fused
+
+
+def test_side_force_sideslip_measures_the_lateral_specific_force():
+    """With the side-force model the sideslip reading is ``2 m f_y / (rho S C_Ybeta V^2)`` of the low-passed lateral
+    specific force (less the bias state); with C_Ybeta 0 it is the zero-sideslip pseudo-measurement.  Two filters fed
+    the same samples differ in their sideslip innovation by exactly that reading (written out here from the airframe
+    numbers, not from the config's property)."""
+    on = dataclasses.replace(CFG0, sideslip_side_force_coef_per_rad=-0.5, airframe_mass_kg=4.0,
+                             airframe_wing_area_m2=0.5, air_density_kg_m3=1.2, sideslip_accel_tau_s=0.05)
+    off = dataclasses.replace(on, sideslip_side_force_coef_per_rad=0.0)
+    assert off.sideslip_accel_gain_m == 0.0
+    f_y, tas = 0.8, 20.0
+    innov = {}
+    for name, cfg in (("on", on), ("off", off)):
+        ekf = NavEkf(cfg, t_us=0, pos_ned_m=[0.0, 0.0, -100.0], vel_ned_m_s=[20.0, 0.0, 0.0],
+                     wind_ne_m_s=(0.0, 0.0))
+        for k in range(1, 201):                              # 1 s at 200 Hz: 20 filter time constants
+            t = k * 5000
+            ekf.predict(ImuSample(t, np.zeros(3), np.array([0.0, f_y, -9.80665])), AttitudeSample(t, 0.0, 0.0, 0.0))
+        ekf.fuse_airspeed(1_000_000, tas)
+        st = ekf.status()["sideslip"]
+        assert st.fused, st
+        innov[name] = (st.innovation[0], ekf.x)
+    x_on = innov["on"][1]
+    v_air = tas / (1.0 + x_on[S.tas_scale][0])
+    gain_m = 2.0 * 4.0 / (1.2 * 0.5 * -0.5)
+    # (the airspeed update before it is the same in both filters; it moves the bias state by a negligible amount)
+    expect = gain_m * f_y / v_air**2
+    assert innov["on"][0] - innov["off"][0] == pytest.approx(expect, rel=0.02)
+    assert abs(expect) > 0.03                                 # a reading of degrees, not noise
 
 
 def test_joseph_update_keeps_P_symmetric_positive_and_matches_textbook_kalman():
