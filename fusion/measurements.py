@@ -241,9 +241,10 @@ class SyntheticSideslip:
 
     The measured value is either 0 (the classic zero-sideslip assumption) or the side-force sideslip
     ``accel_gain_rad_per_m_s2 * f_y`` from the low-passed lateral specific force ``f_y`` (the airframe's side force
-    ``q S C_Ybeta beta = m f_y``: ``beta = 2 m f_y / (rho S C_Ybeta V^2)``; :attr:`fusion.config.EkfConfig.
-    sideslip_accel_gain_m` over ``V^2``).  The accelerometer's bias is in that reading, so with a non-zero gain the
-    prediction is ``beta(x) + accel_gain_rad_per_m_s2 * accel_bias_y`` (measured ``f_y`` = true + bias).
+    ``q S C_Ybeta beta = m f_y``: ``beta = 2 m f_y / (rho S C_Ybeta V^2)``, i.e. the gain is
+    :attr:`~fusion.config.EkfConfig.sideslip_accel_gain_m` over ``V^2``).  The accelerometer's bias is in that
+    reading, so with a non-zero gain the prediction is ``beta(x) + accel_gain_rad_per_m_s2 * accel_bias_y``
+    (measured ``f_y`` = true + bias).
     ``accel_gain_rad_per_m_s2`` is an argument of :meth:`row` (it changes with the airspeed of each sample);
     :meth:`predict`, :meth:`jacobian` and :meth:`linearise` use the field's value.
     """
