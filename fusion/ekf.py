@@ -786,14 +786,13 @@ class NavEkf:
         self._f_held: tuple[float, float, float, float, float, float] | None = None
         self._rates_held = (0.0, 0.0, 0.0)               # body rates of the last IMU sample (rad/s, FRD)
         # lateral specific force (body y, m/s^2), low-passed over sideslip_accel_tau_s: the side-force sideslip
-        self._lat_f: float | None = None
+        self._lat_f = math.nan                           # NaN until the first IMU sample
         self._lat_rate_per_s = 1.0 / cfg.sideslip_accel_tau_s if cfg.sideslip_accel_tau_s > 0.0 else math.inf
         self._beta_gain_m = cfg.sideslip_accel_gain_m if cfg.sideslip_fusion else 0.0
         self._att: AttitudeSample | None = None          # AHRS attitude of the last processed IMU sample
         self._att_out: AttitudeSample | None = None      # first pushed attitude (output before any is processed)
         self._Rl: tuple[float, ...] | None = None        # its rotation (body to AHRS-NED), row by row
         self._R_nb: Mat | None = None                    # the same as a matrix (built when a model needs it)
-        self._beta_model: SyntheticSideslip | None = None
         self._newest_imu_us: int | None = None
         self._imu_q: deque[tuple[int, float, float, float, float, float, float, AttitudeSample]] = deque()
         self._heap: list[tuple[int, int, int, str, Any]] = []
@@ -1071,6 +1070,8 @@ class NavEkf:
         gap = False
         fx = fy = fz = wx = wy = wz = gx = gy = gz = 0.0
         lat, lat_rate = self._lat_f, self._lat_rate_per_s
+        if math.isnan(lat) and q:
+            lat = q[0][2]                                 # the low-pass starts at the first sample's f_y
         t = t_in
         while q and q[0][0] <= t_end:
             t, fx, fy, fz, gx, gy, gz, att = q.popleft()
@@ -1090,8 +1091,6 @@ class NavEkf:
             dt_us = t - t_in
             gap = dt_us > gap_us and n_fused > 0
             n_fused += 1
-            if lat is None:
-                lat = fy
             if dt_us > 0:
                 dt = dt_us * S_PER_US
                 lat += (fy - lat) * min(1.0, dt * lat_rate)
@@ -1421,17 +1420,14 @@ class NavEkf:
             else:
                 if self._R_nb is None:
                     self._R_nb = np.array(self._Rl).reshape(3, 3)
-                model = self._beta_model
-                if model is None or model.R_nb_ahrs is not self._R_nb:    # one model per AHRS attitude
-                    model = self._beta_model = SyntheticSideslip(self._R_nb)
                 # the side-force sideslip (measured value) from the lateral specific force and the corrected
                 # airspeed; 0 with the model off (zero sideslip)
                 k_beta, z_beta = 0.0, 0.0
-                if self._beta_gain_m and self._lat_f is not None:
+                if self._beta_gain_m and not math.isnan(self._lat_f):
                     v_air = max(tas / (1.0 + float(kf.x[_I_SCALE])), c.tas_min_m_s)
                     k_beta = self._beta_gain_m / (v_air * v_air)
                     z_beta = k_beta * self._lat_f
-                z_hat, h = model.row(self._kf.x, k_beta)
+                z_hat, h = SyntheticSideslip(self._R_nb, k_beta).row(self._kf.x)
                 self._fuse1(self._st["sideslip"], t, z_hat, h, z_beta, self._r_beta, c.gate_sideslip_nis)
 
     def _reset_wind(self, tas: float) -> None:

@@ -244,9 +244,8 @@ class SyntheticSideslip:
     ``q S C_Ybeta beta = m f_y``: ``beta = 2 m f_y / (rho S C_Ybeta V^2)``, i.e. the gain is
     :attr:`~fusion.config.EkfConfig.sideslip_accel_gain_m` over ``V^2``).  The accelerometer's bias is in that
     reading, so with a non-zero gain the prediction is ``beta(x) + accel_gain_rad_per_m_s2 * accel_bias_y``
-    (measured ``f_y`` = true + bias).
-    ``accel_gain_rad_per_m_s2`` is an argument of :meth:`row` (it changes with the airspeed of each sample);
-    :meth:`predict`, :meth:`jacobian` and :meth:`linearise` use the field's value.
+    (measured ``f_y`` = true + bias).  The gain changes with each sample's airspeed, so the EKF builds one model
+    per sample.
     """
 
     R_nb_ahrs: Mat
@@ -270,19 +269,17 @@ class SyntheticSideslip:
         return vbx, vby, (r00, r10, r20), (r01, r11, r21), (wn, we), (c, s)
 
     def predict(self, x: Vec) -> Vec:
-        vbx, vby, _, _, _, _ = self._parts(x)
-        return np.array([vby / max(vbx, MIN_AIR_SPEED_M_S) + self.accel_gain_rad_per_m_s2 * float(x[_BAY])])
+        return np.array([self.row(x)[0]])
 
     def jacobian(self, x: Vec) -> Mat:
         return self.linearise(x)[1]
 
     def linearise(self, x: Vec) -> tuple[Vec, Mat]:
-        z, h = self.row(x, self.accel_gain_rad_per_m_s2)
+        z, h = self.row(x)
         return np.array([z]), h[None, :]
 
-    def row(self, x: Vec, accel_gain_rad_per_m_s2: float = 0.0) -> tuple[float, Vec]:
-        """``(z_hat, h)``: the predicted sideslip measurement (rad) and the Jacobian row (n,), for a side-force gain
-        ``accel_gain_rad_per_m_s2`` (0: zero sideslip, no accelerometer-bias term)."""
+    def row(self, x: Vec) -> tuple[float, Vec]:
+        """``(z_hat, h)``: the predicted sideslip measurement (rad) and the Jacobian row (n,)."""
         vbx, vby, bx, by, (wn, we), (c, s) = self._parts(x)
         vx = max(vbx, MIN_AIR_SPEED_M_S)
         gx, gy = -vby / (vx * vx), 1.0 / vx                  # d(vb_y / vb_x) / d(vb_x, vb_y)
@@ -292,9 +289,10 @@ class SyntheticSideslip:
         h = np.zeros(S.dim)
         h[_VN], h[_VE], h[_VD], h[_WN], h[_WE] = dn, de, dw[2], -dn, -de
         h[_YB] = dw[0] * -we + dw[1] * wn                   # d w / d yaw_bias = (-w_E, w_N, 0)
-        if accel_gain_rad_per_m_s2:
-            h[_BAY] = accel_gain_rad_per_m_s2
-            return vby / vx + accel_gain_rad_per_m_s2 * float(x[_BAY]), h
+        k = self.accel_gain_rad_per_m_s2
+        if k:
+            h[_BAY] = k
+            return vby / vx + k * float(x[_BAY]), h
         return vby / vx, h
 
     @staticmethod

@@ -98,7 +98,7 @@ def test_side_force_sideslip_of_the_default_config_tracks_the_simulated_airframe
     imu, truth = read_log(short_run / "imu.csv"), read_log(short_run / "truth.csv")
     t_imu = imu["t_us"] * 1e-6
     a = np.minimum(1.0, np.diff(t_imu, prepend=t_imu[0]) / cfg.sideslip_accel_tau_s)
-    f_y = lfilter_ema(imu["accel_y_m_s2"], a)
+    f_y = _ema(imu["accel_y_m_s2"], a)
     t = truth["t_us"] * 1e-6
     sel = t > 10.0
     beta = truth["beta_rad"][sel]
@@ -109,7 +109,7 @@ def test_side_force_sideslip_of_the_default_config_tracks_the_simulated_airframe
     assert rms_err < 0.6 * rms, (np.degrees(rms), np.degrees(rms_err))     # zero sideslip: 1.0 * rms
 
 
-def lfilter_ema(x: np.ndarray, a: np.ndarray) -> np.ndarray:
+def _ema(x: np.ndarray, a: np.ndarray) -> np.ndarray:
     """First-order low-pass with per-sample gain ``a`` (the EKF's recursion, written out independently)."""
     y = np.empty_like(x)
     y[0] = x[0]
