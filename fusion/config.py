@@ -50,9 +50,12 @@ class EkfConfig:
         ``baro_bias_rw_m_per_rt_s``, ``terrain_rw_m_per_rt_s``, ``tas_scale_rw_per_rt_s``: random walks of the
         slowly varying states.  ``att_delay_rw_s_per_rt_s``: of the AHRS time misalignment (a property of the
         installation; the walk lets it follow an upstream latency compensation that changes in flight).
+        ``side_force_ofs_rw_m_s2_per_rt_s``: of the side-force sideslip's offset (an installation constant too).
     Initial one-sigma uncertainties
         ``init_*_sigma_*``; also the values a covariance reset restores.  ``init_att_delay_sigma_s``: the AHRS
         attitude's latency, unknown at start (autopilot telemetry and companion links: 0-0.1 s).
+        ``init_side_force_ofs_sigma_m_s2``: the side-force sideslip's offset (``g`` times an AHRS roll error of up to
+        about 1 deg, plus an airframe's trim side force).
         ``init_tas_scale_sigma`` is the pitot calibration's uncertainty (3 %: installation errors of a few percent;
         the Monte Carlo campaign draws each run's scale error with a standard deviation uniform in 0-5 %, 2.9 % over
         the campaign, and a 2 % prior put a 7.6 % error at 3.8 sigma and the wind 1.8 m/s outside its sigma, while
@@ -188,6 +191,7 @@ class EkfConfig:
     terrain_rw_m_per_rt_s: float = 0.02
     tas_scale_rw_per_rt_s: float = 0.0
     att_delay_rw_s_per_rt_s: float = 1e-3
+    side_force_ofs_rw_m_s2_per_rt_s: float = 1e-3
     # initial uncertainty
     init_pos_ne_sigma_m: float = 10.0
     init_pos_d_sigma_m: float = 5.0
@@ -201,6 +205,7 @@ class EkfConfig:
     init_terrain_sigma_m: float = 2.0
     init_tas_scale_sigma: float = 0.03
     init_att_delay_sigma_s: float = 0.05
+    init_side_force_ofs_sigma_m_s2: float = 0.2
     tas_scale_update_fraction: float = 0.03
     tas_scale_calm_fraction: float = 1.0
     tas_scale_calm_turb_sigma_max_m_s: float = 1.6
@@ -269,6 +274,7 @@ class EkfConfig:
             "init_terrain_sigma_m": (1e-3, 1e4),
             "init_tas_scale_sigma": (1e-5, 0.5),
             "init_att_delay_sigma_s": (1e-5, 1.0),
+            "init_side_force_ofs_sigma_m_s2": (1e-5, 5.0),
             "tas_sigma_m_s": (1e-3, 20.0),
             "sideslip_sigma_deg": (1e-3, 90.0),
             "airframe_mass_kg": (0.05, 1000.0),
@@ -307,6 +313,7 @@ class EkfConfig:
             "terrain_rw_m_per_rt_s": 100.0,
             "tas_scale_rw_per_rt_s": 0.1,
             "att_delay_rw_s_per_rt_s": 0.1,
+            "side_force_ofs_rw_m_s2_per_rt_s": 1.0,
             "tas_scale_update_fraction": 1.0,
             "tas_scale_calm_fraction": 1.0,
             "tas_scale_calm_turb_sigma_max_m_s": 20.0,

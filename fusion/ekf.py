@@ -322,8 +322,8 @@ class NavEstimate:
     ``beta + psi + drift``, i.e. the EKF's course over ground.  ``wind_ne_m_s`` is the velocity of the air (blowing
     *to*); ``wind_from_rad`` the direction it blows
     *from* (MAVLink WIND).  Angle sigmas are capped at pi where the angle is undefined (speed near zero).
-    ``yaw_bias_rad``, ``opt_rot_rad``, ``baro_bias_m``, ``terrain_h_m``, ``tas_scale``, ``accel_bias_b_m_s2``: the
-    calibration states (:mod:`fusion.state`).  ``cov_pvw`` is the 6x6 covariance of ``[pos_ne, vel_ne, wind_ne]``
+    ``yaw_bias_rad``, ``opt_rot_rad``, ``baro_bias_m``, ``terrain_h_m``, ``tas_scale``, ``accel_bias_b_m_s2``,
+    ``side_force_ofs_m_s2``: the calibration states (:mod:`fusion.state`).  ``cov_pvw`` is the 6x6 covariance of ``[pos_ne, vel_ne, wind_ne]``
     (for NEES).  ``valid`` is false with
     ``invalid_reason`` when the output should not be used (see :class:`~fusion.config.EkfConfig`).
     """
@@ -359,6 +359,7 @@ class NavEstimate:
     baro_bias_m: float
     terrain_h_m: float
     tas_scale: float
+    side_force_ofs_m_s2: float
     cov_pvw: Mat
     valid: bool
     invalid_reason: str = ""
@@ -389,7 +390,7 @@ class NavEstimate:
             accel_bias_z_m_s2=float(self.accel_bias_b_m_s2[2]), yaw_bias_rad=self.yaw_bias_rad,
             opt_rot_rad=self.opt_rot_rad,
             baro_bias_m=self.baro_bias_m, terrain_h_m=self.terrain_h_m, tas_scale=self.tas_scale,
-            valid=self.valid, invalid_reason=self.invalid_reason,
+            side_force_ofs_m_s2=self.side_force_ofs_m_s2, valid=self.valid, invalid_reason=self.invalid_reason,
         )
         return r
 
@@ -607,7 +608,8 @@ class _FilterCore(ExtendedKalmanFilter):
                         ("accel_bias_b", cfg.accel_bias_rw_m_s2_per_rt_s),
                         ("yaw_bias", cfg.yaw_bias_rw_rad_per_rt_s), ("opt_rot", cfg.opt_rot_rw_rad_per_rt_s),
                         ("baro_bias", cfg.baro_bias_rw_m_per_rt_s), ("terrain_h", cfg.terrain_rw_m_per_rt_s),
-                        ("tas_scale", cfg.tas_scale_rw_per_rt_s), ("att_delay", cfg.att_delay_rw_s_per_rt_s)):
+                        ("tas_scale", cfg.tas_scale_rw_per_rt_s), ("att_delay", cfg.att_delay_rw_s_per_rt_s),
+                        ("side_force_ofs", cfg.side_force_ofs_rw_m_s2_per_rt_s)):
             rw[getattr(S, name)] = q * q
         self._rw_var_rate = rw
         self.n_predictions = 0
@@ -1371,6 +1373,7 @@ class NavEkf:
         var[S.terrain_h] = c.init_terrain_sigma_m**2
         var[S.tas_scale] = c.init_tas_scale_sigma**2
         var[S.att_delay] = c.init_att_delay_sigma_s**2
+        var[S.side_force_ofs] = c.init_side_force_ofs_sigma_m_s2**2
         var[S.base_pos_ne] = c.init_pos_ne_sigma_m**2
         var[S.base_pos_d] = c.init_pos_d_sigma_m**2
         return var
@@ -1609,7 +1612,7 @@ class NavEkf:
             ata_rad=course, ata_sigma_rad=course_sd,
             accel_bias_b_m_s2=xr[S.accel_bias_b], yaw_bias_rad=yb, opt_rot_rad=xl[S.opt_rot.start],
             baro_bias_m=xl[S.baro_bias.start],
-            terrain_h_m=xl[ith], tas_scale=xl[S.tas_scale.start],
+            terrain_h_m=xl[ith], tas_scale=xl[S.tas_scale.start], side_force_ofs_m_s2=xl[S.side_force_ofs.start],
             cov_pvw=_read_only(P[_IX_PVW]),
             valid=valid, invalid_reason=why,
         )

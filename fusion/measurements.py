@@ -52,6 +52,7 @@ _WN, _WE = S.wind_ne.start, S.wind_ne.start + 1
 _PD, _YB, _BB, _TH, _TS = S.pos_d.start, S.yaw_bias.start, S.baro_bias.start, S.terrain_h.start, S.tas_scale.start
 _OR = S.opt_rot.start
 _BAY = S.accel_bias_b.start + 1
+_SFO = S.side_force_ofs.start
 # the same indices in the second row of a flattened 2 x n Jacobian
 _N2, _E2, _BN2, _BE2, _BD2, _TH2, _YB2, _OR2 = (S.dim + i for i in (_N, _E, _BN, _BE, _BD, _TH, _YB, _OR))
 
@@ -243,8 +244,10 @@ class SyntheticSideslip:
     ``accel_gain_rad_per_m_s2 * f_y`` from the low-passed lateral specific force ``f_y`` (the airframe's side force
     ``q S C_Ybeta beta = m f_y``: ``beta = 2 m f_y / (rho S C_Ybeta V^2)``, i.e. the gain is
     :attr:`~fusion.config.EkfConfig.sideslip_accel_gain_m` over ``V^2``).  The accelerometer's bias is in that
-    reading, so with a non-zero gain the prediction is ``beta(x) + accel_gain_rad_per_m_s2 * accel_bias_y``
-    (measured ``f_y`` = true + bias).  The gain changes with each sample's airspeed, so the EKF builds one model
+    reading, so with a non-zero gain the prediction is ``beta(x) + accel_gain_rad_per_m_s2 * (accel_bias_y +
+    side_force_ofs)`` (measured ``f_y`` = true + bias; the offset is the part of the accelerometer's reading at zero
+    sideslip that the bias state, shared with the prediction's AHRS tilt error, does not hold: see
+    :mod:`fusion.state`).  The gain changes with each sample's airspeed, so the EKF builds one model
     per sample.
     """
 
@@ -291,8 +294,8 @@ class SyntheticSideslip:
         h[_YB] = dw[0] * -we + dw[1] * wn                   # d w / d yaw_bias = (-w_E, w_N, 0)
         k = self.accel_gain_rad_per_m_s2
         if k:
-            h[_BAY] = k
-            return vby / vx + k * float(x[_BAY]), h
+            h[_BAY] = h[_SFO] = k
+            return vby / vx + k * (float(x[_BAY]) + float(x[_SFO])), h
         return vby / vx, h
 
     @staticmethod

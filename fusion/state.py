@@ -26,6 +26,8 @@ name               size  unit   meaning
 ``tas_scale``      1     -      airspeed scale error: ``tas_measured = (1 + tas_scale) * tas_true``
 ``att_delay``      1     s      time misalignment of the AHRS attitude: a sample stamped ``t`` describes the
                                 body at ``t - att_delay`` (the AHRS latency not compensated upstream)
+``side_force_ofs`` 1     m/s^2  lateral specific force at zero sideslip, beyond ``accel_bias_b``'s y: what the
+                                side-force sideslip subtracts besides that bias (see below)
 ``base_pos_ne``    2     m      stochastic clone of ``pos_ne`` at the optical cycle's base snapshot
 ``base_pos_d``     1     m      stochastic clone of ``pos_d`` at the base snapshot
 =================  ====  =====  ============================================================================
@@ -77,6 +79,16 @@ Why this set
       observable.  It is a constant of the installation (a slow random walk lets it follow a compensation that
       changes upstream).  The measurement models take the attitude as given (the sideslip's heading lag, ``turn
       rate * tau``, is well inside its sigma; the optical frames carry the optical estimator's own attitude).
+    * ``side_force_ofs``: the side-force sideslip (:class:`fusion.measurements.SyntheticSideslip`) reads
+      ``beta = k (f_y - b_y)`` from the accelerometer's lateral channel less its bias.  But ``accel_bias_b`` is the
+      bias *the prediction* needs, and that includes the AHRS tilt error: a roll error ``d_phi`` rotates gravity into
+      the filter's body y axis, and the bias state takes ``-g d_phi`` of it, which the accelerometer never read.  In
+      the Monte Carlo campaign this made the measured sideslip wrong by about the AHRS roll error (a 1.34 deg roll
+      error: +1.45 deg of sideslip, a -0.53 m/s cross-heading wind bias).  The offset is what the sideslip must
+      subtract besides ``b_y`` (the tilt share, and on a real airframe any side force at zero sideslip: propeller
+      slipstream, an accelerometer mounted off the aircraft's axis), a constant of the installation; observable
+      while the wind is known (GNSS or optical velocity, with airspeed, in turns).  Unused (and unobservable) with the
+      zero-sideslip pseudo-measurement.
     * ``base_pos_ne``/``base_pos_d``: the optical measurement is a position *change* since the base snapshot
       (stochastic cloning): at the snapshot the position and its covariance rows are copied into the clone, which
       is then constant (identity transition, no process noise) while the current position moves on.  The
@@ -168,6 +180,7 @@ S = StateLayout(
         ("terrain_h", 1),
         ("tas_scale", 1),
         ("att_delay", 1),
+        ("side_force_ofs", 1),
         ("base_pos_ne", 2),
         ("base_pos_d", 1),
     ],

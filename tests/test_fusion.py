@@ -40,6 +40,7 @@ def _random_state(rng: np.random.Generator) -> np.ndarray:
     x[S.vel_d] = rng.uniform(-3, 3)
     x[S.wind_ne] = rng.uniform(-8, 8, 2)
     x[S.accel_bias_b] = rng.normal(0, 0.05, 3)
+    x[S.side_force_ofs] = rng.normal(0, 0.1)
     x[S.yaw_bias] = rng.normal(0, 0.05)
     x[S.opt_rot] = rng.normal(0, 0.05)
     x[S.baro_bias] = rng.normal(0, 3)
@@ -94,6 +95,10 @@ def test_ekf_config_from_file_defaults_and_errors():
         ekf_config_from_raw({"ekf": {"airframe_mass_kg": 0.0}})
     with pytest.raises(ConfigError, match="ekf.air_density_kg_m3"):
         ekf_config_from_raw({"ekf": {"air_density_kg_m3": math.nan}})
+    with pytest.raises(ConfigError, match="ekf.init_side_force_ofs_sigma_m_s2"):
+        ekf_config_from_raw({"ekf": {"init_side_force_ofs_sigma_m_s2": 0.0}})
+    with pytest.raises(ConfigError, match="ekf.side_force_ofs_rw_m_s2_per_rt_s"):
+        ekf_config_from_raw({"ekf": {"side_force_ofs_rw_m_s2_per_rt_s": -1e-3}})
 
 
 def test_fast_rotation_matches_gsoe_rotation():
