@@ -323,9 +323,9 @@ class NavEstimate:
     *to*); ``wind_from_rad`` the direction it blows
     *from* (MAVLink WIND).  Angle sigmas are capped at pi where the angle is undefined (speed near zero).
     ``yaw_bias_rad``, ``opt_rot_rad``, ``baro_bias_m``, ``terrain_h_m``, ``tas_scale``, ``accel_bias_b_m_s2``,
-    ``side_force_ofs_m_s2``: the calibration states (:mod:`fusion.state`).  ``cov_pvw`` is the 6x6 covariance of ``[pos_ne, vel_ne, wind_ne]``
-    (for NEES).  ``valid`` is false with
-    ``invalid_reason`` when the output should not be used (see :class:`~fusion.config.EkfConfig`).
+    ``side_force_ofs_m_s2``: the calibration states (:mod:`fusion.state`).  ``cov_pvw`` is the 6x6 covariance of
+    ``[pos_ne, vel_ne, wind_ne]`` (for NEES).  ``valid`` is false with ``invalid_reason`` when the output should not
+    be used (see :class:`~fusion.config.EkfConfig`).
     """
 
     t_us: int
