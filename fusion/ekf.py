@@ -323,7 +323,8 @@ class NavEstimate:
     *to*); ``wind_from_rad`` the direction it blows
     *from* (MAVLink WIND).  Angle sigmas are capped at pi where the angle is undefined (speed near zero).
     ``yaw_bias_rad``, ``opt_rot_rad``, ``baro_bias_m``, ``terrain_h_m``, ``tas_scale``, ``accel_bias_b_m_s2``,
-    ``side_force_ofs_m_s2``: the calibration states (:mod:`fusion.state`).  ``cov_pvw`` is the 6x6 covariance of
+    ``side_force_ofs_m_s2``: the calibration states (:mod:`fusion.state`).  ``wind_turb_sigma_m_s``: the
+    turbulence level the wind model uses now (per axis, adapted in flight).  ``cov_pvw`` is the 6x6 covariance of
     ``[pos_ne, vel_ne, wind_ne]`` (for NEES).  ``valid`` is false with ``invalid_reason`` when the output should not
     be used (see :class:`~fusion.config.EkfConfig`).
     """
@@ -360,6 +361,7 @@ class NavEstimate:
     terrain_h_m: float
     tas_scale: float
     side_force_ofs_m_s2: float
+    wind_turb_sigma_m_s: float
     cov_pvw: Mat
     valid: bool
     invalid_reason: str = ""
@@ -390,7 +392,8 @@ class NavEstimate:
             accel_bias_z_m_s2=float(self.accel_bias_b_m_s2[2]), yaw_bias_rad=self.yaw_bias_rad,
             opt_rot_rad=self.opt_rot_rad,
             baro_bias_m=self.baro_bias_m, terrain_h_m=self.terrain_h_m, tas_scale=self.tas_scale,
-            side_force_ofs_m_s2=self.side_force_ofs_m_s2, valid=self.valid, invalid_reason=self.invalid_reason,
+            side_force_ofs_m_s2=self.side_force_ofs_m_s2, wind_turb_sigma_m_s=self.wind_turb_sigma_m_s,
+            valid=self.valid, invalid_reason=self.invalid_reason,
         )
         return r
 
@@ -1613,6 +1616,7 @@ class NavEkf:
             accel_bias_b_m_s2=xr[S.accel_bias_b], yaw_bias_rad=yb, opt_rot_rad=xl[S.opt_rot.start],
             baro_bias_m=xl[S.baro_bias.start],
             terrain_h_m=xl[ith], tas_scale=xl[S.tas_scale.start], side_force_ofs_m_s2=xl[S.side_force_ofs.start],
+            wind_turb_sigma_m_s=math.sqrt(self._kf.turb_var),
             cov_pvw=_read_only(P[_IX_PVW]),
             valid=valid, invalid_reason=why,
         )

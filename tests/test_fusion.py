@@ -182,6 +182,10 @@ def test_wind_is_reset_from_the_first_airspeed_sample_when_not_given():
     expect = math.sqrt(p_vn + 20.0**2 * (p_yaw + CFG0.sideslip_sigma_rad**2))
     assert est.wind_ne_sigma_m_s[0] == pytest.approx(expect, rel=1e-6)
     assert est.tas_scale == 0.0
+    assert est.side_force_ofs_m_s2 == 0.0
+    assert est.wind_turb_sigma_m_s == ekf.wind_turb_sigma_m_s
+    rec = est.as_record()
+    assert rec["side_force_ofs_m_s2"] == 0.0 and rec["wind_turb_sigma_m_s"] == est.wind_turb_sigma_m_s
 
 
 @pytest.mark.parametrize("seed", range(3))
