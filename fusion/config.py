@@ -201,6 +201,8 @@ class EkfConfig:
     wind_turb_adapt_time_s: float = 60.0
     wind_turb_sigma_min_m_s: float = 0.2
     wind_turb_sigma_max_m_s: float = 5.0
+    wind_d_sigma_ratio: float = 0.8
+    wind_d_corr_time_s: float = 5.0
     yaw_bias_rw_deg_per_rt_s: float = 0.002
     opt_rot_rw_deg_per_rt_s: float = 0.05
     baro_bias_rw_m_per_rt_s: float = 0.03
@@ -281,6 +283,7 @@ class EkfConfig:
             "init_wind_sigma_m_s": (1e-3, 50.0),
             "wind_turb_sigma_m_s": (1e-3, 20.0),
             "wind_turb_corr_time_s": (0.1, 3600.0),
+            "wind_d_corr_time_s": (0.1, 3600.0),
             "wind_turb_sigma_min_m_s": (1e-3, 20.0),
             "wind_turb_sigma_max_m_s": (1e-3, 20.0),
             "init_accel_bias_sigma_m_s2": (1e-5, 5.0),
@@ -335,6 +338,7 @@ class EkfConfig:
             "tas_scale_calm_turb_sigma_max_m_s": 20.0,
             "tas_turb_noise_factor": 10.0,
             "wind_turb_adapt_time_s": 3600.0,
+            "wind_d_sigma_ratio": 3.0,
             "tas_min_m_s": 100.0,
             "sideslip_accel_tau_s": 10.0,
             "gnss_pos_corr_time_s": 3600.0,

@@ -444,6 +444,8 @@ _P_TURB = np.ravel_multi_index(([_I_WIND[0], _I_WIND[0], _I_WMEAN[0], _I_WIND[1]
                                 [_I_WIND[0], _I_WMEAN[0], _I_WMEAN[0], _I_WIND[1], _I_WMEAN[1], _I_WMEAN[1]]),
                                (S.dim, S.dim))
 _X_TURB = np.array([_I_WIND[0], _I_WIND[1], _I_WMEAN[0], _I_WMEAN[1]])
+_I_WD = S.wind_d.start
+_F_WD = _I_WD * S.dim + _I_WD                             # flat index of d wind_d / d wind_d in F
 _IX_PVW = np.ix_(_I_PVW, _I_PVW)
 _POS, _VEL, _BA = S.pos_ned, S.vel_ned, S.accel_bias_b
 _EYE = np.eye(S.dim)
@@ -599,9 +601,11 @@ class _FilterCore(ExtendedKalmanFilter):
         self.P = P0
         self.F = np.eye(S.dim)             # identity apart from the entries _propagate_into writes every time
         self._cfg = cfg
-        self._q_cache: dict[int, tuple[Mat, float, float, float, float]] = {}
+        self._q_cache: dict[int, tuple[Mat, float, float, float, float, float, float]] = {}
         self._decay = 1.0                  # the wind turbulence's decay over the current prediction
         self._q_turb = 0.0                 # the turbulence's noise over the current prediction (m^2/s^2 per axis)
+        self._q_wd = 0.0                   # the vertical wind's noise over the current prediction (m^2/s^2)
+        self._decay_wd = 1.0               # the vertical wind's decay over the current prediction
         #: the turbulence variance in use (m^2/s^2 per axis): ``wind_turb_sigma_m_s^2``, adapted (see predict_x)
         self.turb_var = cfg.wind_turb_sigma_m_s**2
         self._turb_var_lo = cfg.wind_turb_sigma_min_m_s**2
@@ -619,15 +623,17 @@ class _FilterCore(ExtendedKalmanFilter):
 
     def process_noise(self, dt_s: float) -> Mat:
         """``Q`` over a prediction of ``dt_s`` with the turbulence variance now in use."""
-        Q, _, g, _, _ = self._noise_and_decay(dt_s)
+        Q, _, g, _, _, _, g_w = self._noise_and_decay(dt_s)
         Q = Q.copy()
         Q.flat[_Q_WW] += self.turb_var * g
+        Q[_I_WD, _I_WD] += self._cfg.wind_d_sigma_ratio**2 * self.turb_var * g_w
         return Q
 
-    def _noise_and_decay(self, dt_s: float) -> tuple[Mat, float, float, float, float]:
+    def _noise_and_decay(self, dt_s: float) -> tuple[Mat, float, float, float, float, float, float]:
         """``Q`` without the turbulence's own term, the turbulence decay ``e = exp(-dt / tau)``, ``1 - e^2``, the
-        adaptation's decay ``a = exp(-dt / A)`` (``A = wind_turb_adapt_time_s``; 1 when not adapting) and
-        ``c = (2 / tau) / (2 / tau - 1 / A) (a - e^2)`` over a prediction of ``dt_s`` (cached per length).
+        adaptation's decay ``a = exp(-dt / A)`` (``A = wind_turb_adapt_time_s``; 1 when not adapting),
+        ``c = (2 / tau) / (2 / tau - 1 / A) (a - e^2)``, the vertical wind's decay ``e_w = exp(-dt / tau_w)`` and
+        ``1 - e_w^2`` over a prediction of ``dt_s`` (cached per length).
 
         Wind: ``wind = mean + turb``, the mean a random walk (rate ``q``), the turbulence first-order Gauss-Markov
         (``sigma``, ``tau``), so over ``dt`` ``Q_mean = q dt``, ``Q_wind = q dt + sigma^2 (1 - e^2)`` and
@@ -660,11 +666,13 @@ class _FilterCore(ExtendedKalmanFilter):
             if len(self._q_cache) >= Q_CACHE_MAX:
                 self._q_cache.clear()
             Q.flags.writeable = False
-            hit = self._q_cache[key] = (Q, decay, -math.expm1(-2.0 * dt_s / tau), a, c)
+            tau_w = cfg.wind_d_corr_time_s
+            hit = self._q_cache[key] = (Q, decay, -math.expm1(-2.0 * dt_s / tau), a, c, math.exp(-dt_s / tau_w),
+                                        -math.expm1(-2.0 * dt_s / tau_w))
         return hit
 
     def predict_x(self, u: ImuIncrement = None) -> None:  # type: ignore[assignment]
-        self.Q, e, g, a, c = self._noise_and_decay(u.dt_s)
+        self.Q, e, g, a, c, e_w, g_w = self._noise_and_decay(u.dt_s)
         v0 = self.turb_var
         if self._cfg.wind_turb_adapt_time_s > 0.0:
             # turbulence intensity: E[d^2] of the estimated turbulence d = wind - mean (its square plus its variance
@@ -686,11 +694,17 @@ class _FilterCore(ExtendedKalmanFilter):
             self.turb_var = min(self._turb_var_hi, max(self._turb_var_lo, d2 + (v0 - d2) * a))
         else:
             self._q_turb = v0 * g
-        # the turbulence relaxes towards the mean: wind' = e wind + (1 - e) mean
+        # the vertical wind's turbulence (sigma a fixed ratio of the horizontal one's in use)
+        self._q_wd = self._cfg.wind_d_sigma_ratio**2 * self.turb_var * g_w
+        # the turbulence relaxes towards the mean: wind' = e wind + (1 - e) mean; the vertical wind towards 0
         self.x = _propagate_into(self.x, u, self.F, e)
+        self.x[_I_WD] *= e_w
         if e != self._decay:
             self.F.flat[_F_WIND] = (e, e, 1.0 - e, 1.0 - e)
             self._decay = e
+        if e_w != self._decay_wd:
+            self.F.flat[_F_WD] = e_w
+            self._decay_wd = e_w
 
     def predict(self, u: ImuIncrement = None) -> None:  # type: ignore[assignment]
         """filterpy's prediction, then ``P`` symmetrised (``F P F'`` is symmetric only up to rounding)."""
@@ -702,6 +716,7 @@ class _FilterCore(ExtendedKalmanFilter):
         iw = _I_WIND[0]
         P[iw, iw] += q_turb
         P[iw + 1, iw + 1] += q_turb
+        P[_I_WD, _I_WD] += self._q_wd
         self.n_predictions += 1
 
 
@@ -1369,6 +1384,7 @@ class NavEkf:
         var[S.vel_d] = c.init_vel_d_sigma_m_s**2
         var[S.wind_ne] = c.init_wind_sigma_m_s**2
         var[S.wind_mean_ne] = c.init_wind_sigma_m_s**2
+        var[S.wind_d] = (c.wind_d_sigma_ratio * c.wind_turb_sigma_m_s)**2     # the turbulence's stationary variance
         var[S.accel_bias_b] = c.init_accel_bias_sigma_m_s2**2
         var[S.yaw_bias] = c.init_yaw_bias_sigma_rad**2
         var[S.opt_rot] = c.init_opt_rot_sigma_rad**2

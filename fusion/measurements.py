@@ -49,6 +49,7 @@ _N, _E = S.pos_ne.start, S.pos_ne.start + 1
 _BN, _BE, _BD = S.base_pos_ne.start, S.base_pos_ne.start + 1, S.base_pos_d.start
 _VN, _VE, _VD = S.vel_ne.start, S.vel_ne.start + 1, S.vel_d.start
 _WN, _WE = S.wind_ne.start, S.wind_ne.start + 1
+_WD = S.wind_d.start
 _PD, _YB, _BB, _TH, _TS = S.pos_d.start, S.yaw_bias.start, S.baro_bias.start, S.terrain_h.start, S.tas_scale.start
 _OR = S.opt_rot.start
 _BAY = S.accel_bias_b.start + 1
@@ -168,8 +169,8 @@ class OpticalDisplacement:
 # --------------------------------------------------------------------------------------------------------------
 @dataclass(frozen=True, slots=True)
 class TrueAirspeed:
-    """Measured true airspeed (m/s): ``(1 + tas_scale) * |v_ground - wind|`` with ``v_ground`` 3-D (vertical speed
-    from the state) and the wind horizontal, as PX4 EKF2 and ArduPilot fuse it."""
+    """Measured true airspeed (m/s): ``(1 + tas_scale) * |v_ground - wind|``, both 3-D (``[wind_ne, wind_d]``; PX4
+    EKF2 and ArduPilot fuse it the same way with a horizontal wind)."""
 
     def predict(self, x: Vec) -> Vec:
         return np.array([self.row(x)[0]])
@@ -185,12 +186,13 @@ class TrueAirspeed:
     def row(x: Vec) -> tuple[float, Vec]:
         """``(z_hat, h)``: the predicted airspeed (m/s) and the Jacobian row (n,)."""
         xl = x.tolist()
-        an, ae, ad = xl[_VN] - xl[_WN], xl[_VE] - xl[_WE], xl[_VD]
+        an, ae, ad = xl[_VN] - xl[_WN], xl[_VE] - xl[_WE], xl[_VD] - xl[_WD]
         speed = max(math.sqrt(an * an + ae * ae + ad * ad), MIN_AIR_SPEED_M_S)
         scale = 1.0 + xl[_TS]
         k = scale / speed
         h = np.zeros(S.dim)
-        h[_VN], h[_VE], h[_VD], h[_WN], h[_WE], h[_TS] = k * an, k * ae, k * ad, -k * an, -k * ae, speed
+        h[_VN], h[_VE], h[_VD], h[_WN], h[_WE], h[_WD] = k * an, k * ae, k * ad, -k * an, -k * ae, -k * ad
+        h[_TS] = speed
         return scale * speed, h
 
     @staticmethod
@@ -208,13 +210,14 @@ class TrueAirspeed:
     def wind_from_airspeed(x: Vec, tas_m_s: float, yaw_ahrs_rad: float) -> tuple[Vec, Mat, Vec, Vec]:
         """The wind triangle for a wind reset (PX4 EKF2's ``resetWindUsingAirspeed``): with zero sideslip the air
         moves along the true heading ``psi = yaw_ahrs - yaw_bias`` at the horizontal true airspeed, so
-        ``wind_ne = vel_ne - tas_h [cos psi, sin psi]`` with ``tas_h = sqrt((tas / (1 + tas_scale))^2 - vel_d^2)``.
+        ``wind_ne = vel_ne - tas_h [cos psi, sin psi]`` with ``tas_h = sqrt((tas / (1 + tas_scale))^2 - v_air_d^2)``
+        and ``v_air_d = vel_d - wind_d``.
 
         Returns the wind (m/s, N/E) and its Jacobians w.r.t. the state (2 x n), the measured airspeed (2,) and the
         sideslip angle (2,; for the sideslip's uncertainty)."""
         k = 1.0 + x[_TS]
         tas = tas_m_s / k
-        vd = x[_VD]
+        vd = x[_VD] - x[_WD]                                # vertical air velocity
         tas_h = math.sqrt(max(tas * tas - vd * vd, MIN_AIR_SPEED_M_S**2))
         psi = yaw_ahrs_rad - x[_YB]
         c, s = math.cos(psi), math.sin(psi)
@@ -224,6 +227,7 @@ class TrueAirspeed:
         J[0, _VN] = J[1, _VE] = 1.0
         J[0, _YB], J[1, _YB] = -tas_h * s, tas_h * c        # d psi / d yaw_bias = -1
         J[0, _VD], J[1, _VD] = c * vd / tas_h, s * vd / tas_h
+        J[0, _WD], J[1, _WD] = -J[0, _VD], -J[1, _VD]
         J[0, _TS], J[1, _TS] = c * dh_dtas * tas / k, s * dh_dtas * tas / k    # d tas / d tas_scale = -tas / k
         d_tas = np.array([-c, -s]) * dh_dtas / k
         d_beta = np.array([s, -c]) * tas_h                  # air direction psi + beta
@@ -235,7 +239,7 @@ class TrueAirspeed:
 class SyntheticSideslip:
     """Sideslip pseudo-measurement (rad, small-angle ``v_air_b_y / v_air_b_x``).
 
-    The air-relative velocity ``[v_ne - wind_ne, v_d]`` is rotated into the body frame with the AHRS attitude
+    The air-relative velocity ``[v_ne - wind_ne, v_d - wind_d]`` is rotated into the body frame with the AHRS attitude
     ``R_nb_ahrs`` corrected by the heading error: ``R_nb = R_z(-yaw_bias) @ R_nb_ahrs``.  In coordinated flight
     the aircraft points into the relative wind, which together with the airspeed makes the wind observable
     without turns.
@@ -263,7 +267,7 @@ class SyntheticSideslip:
         Scalar arithmetic: this runs with every airspeed sample, and nine multiplications are cheaper than four
         3x3 NumPy products."""
         xl = x.tolist()
-        an, ae, ad = xl[_VN] - xl[_WN], xl[_VE] - xl[_WE], xl[_VD]
+        an, ae, ad = xl[_VN] - xl[_WN], xl[_VE] - xl[_WE], xl[_VD] - xl[_WD]
         c, s = math.cos(xl[_YB]), math.sin(xl[_YB])
         wn, we = c * an - s * ae, s * an + c * ae            # R_z(yaw_bias) = R_z(-yaw_bias)^T
         (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = self.R_nb_ahrs.tolist()
@@ -290,7 +294,7 @@ class SyntheticSideslip:
         dw = (gx * bx[0] + gy * by[0], gx * bx[1] + gy * by[1], gx * bx[2] + gy * by[2])
         dn, de = c * dw[0] + s * dw[1], -s * dw[0] + c * dw[1]
         h = np.zeros(S.dim)
-        h[_VN], h[_VE], h[_VD], h[_WN], h[_WE] = dn, de, dw[2], -dn, -de
+        h[_VN], h[_VE], h[_VD], h[_WN], h[_WE], h[_WD] = dn, de, dw[2], -dn, -de, -dw[2]
         h[_YB] = dw[0] * -we + dw[1] * wn                   # d w / d yaw_bias = (-w_E, w_N, 0)
         k = self.accel_gain_rad_per_m_s2
         if k:

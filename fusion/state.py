@@ -16,6 +16,8 @@ name               size  unit   meaning
 ``wind_ne``        2     m/s    horizontal wind: the velocity of the air (the direction it blows *to*), the
                                 total wind the aircraft flies in (mean + turbulence)
 ``wind_mean_ne``   2     m/s    the slowly varying mean of that wind, to which ``wind_ne`` relaxes
+``wind_d``         1     m/s    vertical wind (down positive): turbulence without a mean, seen by the sideslip
+                                in banked flight (and by the 3-D airspeed)
 ``accel_bias_b``   3     m/s^2  accelerometer bias, body FRD (absorbs AHRS roll/pitch errors too: a constant
                                 tilt error makes a body-fixed specific-force error)
 ``yaw_bias``       1     rad    AHRS heading error: ``yaw_ahrs - yaw_true``
@@ -45,6 +47,16 @@ Why this set
       lets the wind follow a pitot scale error, which turns with the heading, so the scale was never observable in
       turbulence (in the Monte Carlo campaign the estimated scale walked +2 % in 300 s whatever the true one);
       turbulence that returns to a mean cannot follow the heading for long, so loops of turns show the scale.
+    * ``wind_d``: the air velocity is 3-D, ``[v_ne - wind_ne, v_d - wind_d]``.  In level flight the vertical wind
+      moves neither the airspeed (to first order) nor the sideslip, but in a bank of ``phi`` the body y axis takes
+      ``sin(phi)`` of the vertical air velocity, so a vertical gust reads as sideslip: with the vertical wind taken
+      as 0, the side-force sideslip puts ``tan(phi) wind_d`` into the cross-heading wind.  In the Monte Carlo
+      campaign's turbulence (vertical gusts of 0.6-0.9 m/s rms) the sideslip predicted without it was off by
+      0.55-0.95 deg rms (0.2-0.33 m/s of cross-heading wind), mostly at the 5-30 s periods of the turns, where the
+      side-force sideslip itself is within 0.1 deg.  First-order Gauss-Markov with no mean: standard deviation
+      ``wind_d_sigma_ratio`` times the adapted horizontal turbulence sigma (Dryden below 1000 ft: 0.6-1.0),
+      correlation time ``wind_d_corr_time_s`` (Dryden ``L_w / V`` = height / airspeed).  Observable only in banked
+      flight, where the sideslip's innovation is shared between it and the horizontal wind by their covariances.
     * ``accel_bias_b`` (3): the IMU drives the prediction; a MEMS bias of 0.05 m/s^2 integrates to 90 m in 60 s,
       and an AHRS tilt error appears as a body-fixed specific-force error of ``g * tilt``.  All three axes, since the
       vertical one is observable from baro/GNSS and costs little.
@@ -173,6 +185,7 @@ S = StateLayout(
         ("vel_d", 1),
         ("wind_ne", 2),
         ("wind_mean_ne", 2),
+        ("wind_d", 1),
         ("accel_bias_b", 3),
         ("yaw_bias", 1),
         ("opt_rot", 1),

@@ -39,6 +39,7 @@ def _random_state(rng: np.random.Generator) -> np.ndarray:
     x[S.vel_ne] = rng.uniform(-25, 25, 2)
     x[S.vel_d] = rng.uniform(-3, 3)
     x[S.wind_ne] = rng.uniform(-8, 8, 2)
+    x[S.wind_d] = rng.normal(0, 1.0)
     x[S.accel_bias_b] = rng.normal(0, 0.05, 3)
     x[S.side_force_ofs] = rng.normal(0, 0.1)
     x[S.yaw_bias] = rng.normal(0, 0.05)
@@ -99,6 +100,10 @@ def test_ekf_config_from_file_defaults_and_errors():
         ekf_config_from_raw({"ekf": {"init_side_force_ofs_sigma_m_s2": 0.0}})
     with pytest.raises(ConfigError, match="ekf.side_force_ofs_rw_m_s2_per_rt_s"):
         ekf_config_from_raw({"ekf": {"side_force_ofs_rw_m_s2_per_rt_s": -1e-3}})
+    with pytest.raises(ConfigError, match="ekf.wind_d_sigma_ratio"):
+        ekf_config_from_raw({"ekf": {"wind_d_sigma_ratio": -0.1}})
+    with pytest.raises(ConfigError, match="ekf.wind_d_corr_time_s"):
+        ekf_config_from_raw({"ekf": {"wind_d_corr_time_s": 0.0}})
 
 
 def test_fast_rotation_matches_gsoe_rotation():

@@ -71,6 +71,35 @@ def test_turbulence_relaxes_to_the_mean_with_its_correlation_time():
     assert P1[im[0], im[0]] - P0[im[0], im[0]] == pytest.approx(cfg.wind_rw_m_s_per_rt_s**2 * dt_s, rel=1e-9)
 
 
+def test_vertical_wind_relaxes_to_zero_with_its_correlation_time():
+    """The vertical wind is first-order Gauss-Markov without a mean: between measurements its estimate decays as
+    ``exp(-t / tau_w)`` and its variance as ``v0 exp(-2 t / tau_w) + (r sigma)^2 (1 - exp(-2 t / tau_w))`` with
+    ``r = wind_d_sigma_ratio`` and ``sigma`` the horizontal turbulence sigma in use."""
+    cfg = dataclasses.replace(EkfConfig(), fusion_delay_s=0.0, sideslip_fusion=False, wind_turb_sigma_m_s=1.2,
+                              wind_turb_adapt_time_s=0.0, wind_d_sigma_ratio=0.7, wind_d_corr_time_s=4.0)
+    ekf = NavEkf(cfg, t_us=0, pos_ned_m=[0.0, 0.0, -100.0], vel_ned_m_s=[20.0, 0.0, 0.0], wind_ne_m_s=[0.0, 0.0])
+    iw = S.wind_d.start
+    assert ekf.P[iw, iw] == pytest.approx((0.7 * 1.2) ** 2, rel=1e-12)        # starts at the stationary variance
+    x, P = ekf.x, ekf.P
+    x[iw], P[iw, iw] = 1.5, 0.01                                                # a known gust, well determined
+    ekf._store(x, P)
+    dt_s = 3.0
+    _level_north(ekf, 0, round(dt_s * 1e6), tas_m_s=None)
+    e = math.exp(-dt_s / cfg.wind_d_corr_time_s)
+    assert ekf.x[iw] == pytest.approx(1.5 * e, rel=1e-9)
+    assert ekf.P[iw, iw] == pytest.approx(0.01 * e * e + (0.7 * 1.2) ** 2 * (1.0 - e * e), rel=1e-9)
+
+
+def test_vertical_wind_off_leaves_the_filter_as_without_it():
+    """``wind_d_sigma_ratio = 0`` pins the vertical wind at 0 with no variance: the airspeed and sideslip then see
+    the vertical ground speed as the vertical air velocity (the horizontal-wind model of PX4 EKF2 and ArduPilot)."""
+    cfg = dataclasses.replace(EkfConfig(), fusion_delay_s=0.0, wind_d_sigma_ratio=0.0)
+    ekf = NavEkf(cfg, t_us=0, pos_ned_m=[0.0, 0.0, -100.0], vel_ned_m_s=[20.0, 0.0, -2.0], wind_ne_m_s=[1.0, 0.0])
+    _level_north(ekf, 0, 5_000_000, tas_m_s=18.0)
+    iw = S.wind_d.start
+    assert ekf.x[iw] == 0.0 and ekf.P[iw, iw] == 0.0 and not np.any(ekf.P[iw])
+
+
 def test_wind_model_fields_are_validated_by_name():
     with pytest.raises(ConfigError, match="wind_turb_corr_time_s"):
         ekf_config_from_raw({"wind_turb_corr_time_s": 0.0})
