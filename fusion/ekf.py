@@ -320,8 +320,9 @@ class NavEstimate:
     heading error and, with the yaw rate, by the estimated AHRS delay), ``drift_rad`` = course - heading in
     [-pi, pi) (positive: track to the right of the heading), ``ata_rad`` = the paper's eq. 12 actual tracking angle
     ``beta + psi + drift``, i.e. the EKF's course over ground.  ``wind_ne_m_s`` is the velocity of the air (blowing
-    *to*); ``wind_from_rad`` the direction it blows
-    *from* (MAVLink WIND).  Angle sigmas are capped at pi where the angle is undefined (speed near zero).
+    *to*); ``wind_from_rad`` the direction it blows *from* (MAVLink WIND); ``wind_d_m_s`` the vertical wind (down
+    positive, turbulence: :mod:`fusion.state`).  Angle sigmas are capped at pi where the angle is undefined (speed
+    near zero).
     ``yaw_bias_rad``, ``opt_rot_rad``, ``baro_bias_m``, ``terrain_h_m``, ``tas_scale``, ``accel_bias_b_m_s2``,
     ``side_force_ofs_m_s2``: the calibration states (:mod:`fusion.state`).  ``wind_turb_sigma_m_s``: the
     turbulence level the wind model uses now (per axis, adapted in flight).  ``cov_pvw`` is the 6x6 covariance of
@@ -348,6 +349,8 @@ class NavEstimate:
     wind_speed_sigma_m_s: float
     wind_from_rad: float
     wind_from_sigma_rad: float
+    wind_d_m_s: float
+    wind_d_sigma_m_s: float
     heading_rad: float
     heading_sigma_rad: float
     drift_rad: float
@@ -385,6 +388,7 @@ class NavEstimate:
             course_rad=self.course_rad, course_sigma_rad=self.course_sigma_rad,
             wind_speed_m_s=self.wind_speed_m_s, wind_speed_sigma_m_s=self.wind_speed_sigma_m_s,
             wind_from_rad=self.wind_from_rad, wind_from_sigma_rad=self.wind_from_sigma_rad,
+            wind_d_m_s=self.wind_d_m_s, wind_d_sigma_m_s=self.wind_d_sigma_m_s,
             heading_rad=self.heading_rad, heading_sigma_rad=self.heading_sigma_rad,
             drift_rad=self.drift_rad, drift_sigma_rad=self.drift_sigma_rad,
             ata_rad=self.ata_rad, ata_sigma_rad=self.ata_sigma_rad,
@@ -1626,6 +1630,7 @@ class NavEkf:
             course_rad=course, course_sigma_rad=course_sd,
             wind_ne_m_s=xr[S.wind_ne], wind_ne_sigma_m_s=sd[S.wind_ne],
             wind_speed_m_s=ws, wind_speed_sigma_m_s=ws_sd, wind_from_rad=w_from, wind_from_sigma_rad=wd_sd,
+            wind_d_m_s=xl[_I_WD], wind_d_sigma_m_s=float(sd[_I_WD]),
             heading_rad=heading, heading_sigma_rad=heading_sd,
             drift_rad=drift, drift_sigma_rad=drift_sd,
             ata_rad=course, ata_sigma_rad=course_sd,
