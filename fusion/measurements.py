@@ -303,8 +303,15 @@ class SyntheticSideslip:
         return vby / vx, h
 
     @staticmethod
-    def noise(cfg: EkfConfig) -> Mat:
-        return np.array([[cfg.sideslip_sigma_rad**2]])
+    def variance(cfg: EkfConfig, turb_var_m2_s2: float = 0.0, airspeed_m_s: float = math.inf) -> float:
+        """Measurement variance (rad^2): ``sideslip_sigma_rad^2`` plus the lateral turbulence the wind state does
+        not follow, seen as an angle at the airspeed: ``(sideslip_turb_noise_factor * sigma_turb / V)^2`` (the
+        sideslip's counterpart of the airspeed's term, :meth:`TrueAirspeed.variance`)."""
+        return cfg.sideslip_sigma_rad**2 + cfg.sideslip_turb_noise_factor**2 * turb_var_m2_s2 / airspeed_m_s**2
+
+    @staticmethod
+    def noise(cfg: EkfConfig, turb_var_m2_s2: float = 0.0, airspeed_m_s: float = math.inf) -> Mat:
+        return np.array([[SyntheticSideslip.variance(cfg, turb_var_m2_s2, airspeed_m_s)]])
 
 
 _H_BARO = np.zeros(S.dim)

@@ -104,6 +104,10 @@ def test_ekf_config_from_file_defaults_and_errors():
         ekf_config_from_raw({"ekf": {"wind_d_sigma_ratio": -0.1}})
     with pytest.raises(ConfigError, match="ekf.wind_d_corr_time_s"):
         ekf_config_from_raw({"ekf": {"wind_d_corr_time_s": 0.0}})
+    with pytest.raises(ConfigError, match="ekf.sideslip_turb_noise_factor"):
+        ekf_config_from_raw({"ekf": {"sideslip_turb_noise_factor": -1.0}})
+    with pytest.raises(ConfigError, match="ekf.wind_turb_adapt_var_weight"):
+        ekf_config_from_raw({"ekf": {"wind_turb_adapt_var_weight": 1.5}})
 
 
 def test_fast_rotation_matches_gsoe_rotation():
@@ -331,6 +335,30 @@ def test_side_force_sideslip_measures_the_lateral_specific_force():
     expect = gain_m * f_y / v_air**2
     assert innov["on"][0] - innov["off"][0] == pytest.approx(expect, rel=0.02)
     assert abs(expect) > 0.03                                 # a reading of degrees, not noise
+
+
+def test_sideslip_noise_grows_with_the_turbulence_in_use():
+    """The sideslip's variance is ``sigma_beta^2 + (factor * sigma_turb / V)^2``: two filters fed the same samples,
+    one with the turbulence term, differ in the sideslip's innovation variance by exactly that term (the covariance
+    before the sideslip update is the same in both: the airspeed update before it does not depend on the factor)."""
+    with_term = dataclasses.replace(CFG0, sideslip_turb_noise_factor=2.0, wind_turb_sigma_m_s=1.5)
+    without = dataclasses.replace(with_term, sideslip_turb_noise_factor=0.0)
+    tas = 20.0
+    var = {}
+    for name, cfg in (("with", with_term), ("without", without)):
+        ekf = NavEkf(cfg, t_us=0, pos_ned_m=[0.0, 0.0, -100.0], vel_ned_m_s=[20.0, 0.0, 0.0], wind_ne_m_s=(0.0, 0.0))
+        for k in range(1, 201):
+            t = k * 5000
+            ekf.predict(ImuSample(t, np.zeros(3), G_DOWN_SPECIFIC_FORCE), AttitudeSample(t, 0.0, 0.0, 0.0))
+        ekf.fuse_airspeed(1_000_000, tas)
+        st = ekf.status()["sideslip"]
+        assert st.fused, st
+        var[name] = (st.innovation_var[0], ekf.wind_turb_sigma_m_s, ekf.x[S.tas_scale][0])
+    sigma_turb, v_air = var["with"][1], tas / (1.0 + var["with"][2])
+    assert sigma_turb == pytest.approx(var["without"][1], rel=1e-12)
+    assert var["with"][0] - var["without"][0] == pytest.approx((2.0 * sigma_turb / v_air) ** 2, rel=1e-9)
+    assert SyntheticSideslip.variance(with_term, sigma_turb**2, v_air) == pytest.approx(
+        math.radians(with_term.sideslip_sigma_deg) ** 2 + (2.0 * sigma_turb / v_air) ** 2, rel=1e-12)
 
 
 def test_joseph_update_keeps_P_symmetric_positive_and_matches_textbook_kalman():

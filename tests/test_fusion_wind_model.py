@@ -100,6 +100,32 @@ def test_vertical_wind_off_leaves_the_filter_as_without_it():
     assert ekf.x[iw] == 0.0 and ekf.P[iw, iw] == 0.0 and not np.any(ekf.P[iw])
 
 
+@pytest.mark.parametrize("weight", [1.0, 0.5, 0.0])
+def test_turbulence_level_averages_the_estimated_turbulence_and_a_share_of_its_variance(weight: float):
+    """Over one prediction of ``dt`` without measurements the turbulence variance in use moves as
+    ``v' = d2 + (v - d2) exp(-dt / A)`` with ``d2 = (|wind - mean|^2 + w tr(P_dd)) / 2`` (per axis): the estimated
+    turbulence's square plus the share ``w = wind_turb_adapt_var_weight`` of its variance, from the state and
+    covariance before the prediction (computed here from ``x`` and ``P`` directly)."""
+    cfg = dataclasses.replace(EkfConfig(), fusion_delay_s=0.0, sideslip_fusion=False, wind_turb_sigma_m_s=1.0,
+                              wind_turb_adapt_time_s=40.0, wind_turb_adapt_var_weight=weight,
+                              wind_turb_sigma_min_m_s=1e-3)
+    ekf = NavEkf(cfg, t_us=0, pos_ned_m=[0.0, 0.0, -100.0], vel_ned_m_s=[20.0, 0.0, 0.0], wind_ne_m_s=[0.0, 0.0])
+    t = _level_north(ekf, 0, 2_000_000, tas_m_s=17.0)          # a 3 m/s tailwind: turbulence part and variance
+    x, P = ekf.x, ekf.P
+    iw, im = S.idx("wind_ne"), S.idx("wind_mean_ne")
+    d = x[iw] - x[im]
+    D = np.zeros((2, S.dim))
+    D[:, iw], D[:, im] = np.eye(2), -np.eye(2)
+    d2 = 0.5 * (float(d @ d) + weight * float(np.trace(D @ P @ D.T)))
+    v0 = ekf.wind_turb_sigma_m_s**2
+    dt_s = cfg.predict_period_s                                    # one IMU sample: exactly one prediction
+    t1 = t + round(dt_s * 1e6)
+    ekf.predict(ImuSample(t1, np.zeros(3), np.array([0.0, 0.0, -G])), AttitudeSample(t1, 0.0, 0.0, 0.0))
+    a = math.exp(-dt_s / cfg.wind_turb_adapt_time_s)
+    assert ekf.wind_turb_sigma_m_s**2 == pytest.approx(d2 + (v0 - d2) * a, rel=1e-9)
+    assert abs(ekf.wind_turb_sigma_m_s**2 - v0) > 1e-6                # it moved
+
+
 def test_wind_model_fields_are_validated_by_name():
     with pytest.raises(ConfigError, match="wind_turb_corr_time_s"):
         ekf_config_from_raw({"wind_turb_corr_time_s": 0.0})
