@@ -993,12 +993,20 @@ def _progress_bar(total: int, enabled: bool) -> Any:
 def refly(out_dir: str | Path, i: int, *, spec: MonteCarloSpec | None = None, keep_outputs: bool = True
           ) -> tuple[RunRecord, list[str] | None]:
     """Re-fly run ``i`` of the campaign in ``out_dir`` alone (its spec from ``campaign.json`` unless given), with
-    its logs and plots in ``out_dir/reflown/run_0000i`` (``keep_outputs``).  Returns the record and the list of
-    fields that differ from the campaign's record of the run (None when there is none)."""
+    its logs and plots in ``out_dir/reflown/run_0000i`` (``keep_outputs``; the outputs of an earlier re-flight
+    there are moved to ``run_0000i.old1``, ``.old2``, ...).  Returns the record and the list of fields that differ
+    from the campaign's record of the run (None when there is none)."""
     out = Path(out_dir)
     sp = spec if spec is not None else load_campaign_spec(out)
     require(0 <= i < MAX_RUNS, "only", f"run index must be in [0, {MAX_RUNS}), got {i}")
     run_dir = out / "reflown" / f"run_{i:05d}"
+    if run_dir.is_dir() and any(run_dir.iterdir()):
+        # an earlier re-flight's logs: kept beside, since the CSV writers would append to them
+        k = 1
+        while run_dir.with_name(f"{run_dir.name}.old{k}").exists():
+            k += 1
+        run_dir.rename(run_dir.with_name(f"{run_dir.name}.old{k}"))
+        log.info("re-fly of run %d: the previous outputs moved to %s.old%d", i, run_dir.name, k)
     run_dir.mkdir(parents=True, exist_ok=True)
     rec = run_one(sp, sp.base_seed, i, sp.duration_s, out_dir=run_dir if keep_outputs else None)
     write_json(run_dir / "record.json", rec.to_dict())

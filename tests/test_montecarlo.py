@@ -409,6 +409,16 @@ def test_refly_one_run_reproduces_it_bit_for_bit(campaigns: Mapping[str, Any], c
     assert {k: v for k, v in redo.metrics.items() if k not in timing} == {
         k: v for k, v in again.metrics.items() if k not in timing}
     assert (c["local"] / "reflown" / "run_00001" / "metrics.json").exists()  # the flight wrote its outputs
+    # a second re-flight starts a fresh folder: the first one's files are kept beside it, not appended to
+    first = {f.name: f.read_bytes() for f in (c["local"] / "reflown" / "run_00001").iterdir() if f.is_file()}
+    assert main(["montecarlo", "--only", "1", "--out", str(c["local"])]) == 0
+    assert "identical to the campaign's record" in capsys.readouterr().out
+    kept = c["local"] / "reflown" / "run_00001.old1"
+    assert {f.name: f.read_bytes() for f in kept.iterdir() if f.is_file()} == first
+    csvs = list((c["local"] / "reflown" / "run_00001").glob("*.csv"))
+    assert csvs or c["kind"] != "real"                                          # the simulator writes CSV logs
+    for f in csvs:
+        assert f.read_bytes().count(b"\n") == first[f.name].count(b"\n"), f.name
 
 
 def test_gsoe_sim_command_of_the_report_reflies_the_run(campaigns: Mapping[str, Any],
