@@ -610,6 +610,7 @@ class _FilterCore(ExtendedKalmanFilter):
         self._q_turb = 0.0                 # the turbulence's noise over the current prediction (m^2/s^2 per axis)
         self._q_wd = 0.0                   # the vertical wind's noise over the current prediction (m^2/s^2)
         self._decay_wd = 1.0               # the vertical wind's decay over the current prediction
+        self._wd_ratio2 = cfg.wind_d_sigma_ratio**2    # vertical / horizontal turbulence variance
         #: the turbulence variance in use (m^2/s^2 per axis): ``wind_turb_sigma_m_s^2``, adapted (see predict_x)
         self.turb_var = cfg.wind_turb_sigma_m_s**2
         self._turb_var_lo = cfg.wind_turb_sigma_min_m_s**2
@@ -630,7 +631,7 @@ class _FilterCore(ExtendedKalmanFilter):
         Q, _, g, _, _, _, g_w = self._noise_and_decay(dt_s)
         Q = Q.copy()
         Q.flat[_Q_WW] += self.turb_var * g
-        Q[_I_WD, _I_WD] += self._cfg.wind_d_sigma_ratio**2 * self.turb_var * g_w
+        Q[_I_WD, _I_WD] += self._wd_ratio2 * self.turb_var * g_w
         return Q
 
     def _noise_and_decay(self, dt_s: float) -> tuple[Mat, float, float, float, float, float, float]:
@@ -703,7 +704,7 @@ class _FilterCore(ExtendedKalmanFilter):
         else:
             self._q_turb = v0 * g
         # the vertical wind's turbulence (sigma a fixed ratio of the horizontal one's in use)
-        self._q_wd = self._cfg.wind_d_sigma_ratio**2 * self.turb_var * g_w
+        self._q_wd = self._wd_ratio2 * self.turb_var * g_w
         # the turbulence relaxes towards the mean: wind' = e wind + (1 - e) mean; the vertical wind towards 0
         self.x = _propagate_into(self.x, u, self.F, e)
         self.x[_I_WD] *= e_w
@@ -830,8 +831,6 @@ class NavEkf:
         self._period_us = round(cfg.predict_period_s * US_PER_S)
         self._gap_us = round(cfg.imu_max_gap_s * US_PER_S)
         self._att_age_us = round(cfg.att_max_age_s * US_PER_S)
-        self._r_beta = float(SyntheticSideslip.noise(cfg)[0, 0])     # + the turbulence's term, per sample
-        self._beta_turb_factor2 = cfg.sideslip_turb_noise_factor**2
         self._r_baro = float(BaroAltitude.noise(cfg)[0, 0])
         self._clone_cycle: int | None = None
         self._last_cycle_pushed: int | None = None
@@ -1459,8 +1458,8 @@ class NavEkf:
                     k_beta = self._beta_gain_m / (v_air * v_air)
                     z_beta = k_beta * self._lat_f
                 z_hat, h = SyntheticSideslip(self._R_nb, k_beta).row(self._kf.x)
-                r_beta = self._r_beta + self._beta_turb_factor2 * kf.turb_var / (v_air * v_air)
-                self._fuse1(self._st["sideslip"], t, z_hat, h, z_beta, r_beta, c.gate_sideslip_nis)
+                self._fuse1(self._st["sideslip"], t, z_hat, h, z_beta,
+                            SyntheticSideslip.variance(c, kf.turb_var, v_air), c.gate_sideslip_nis)
 
     def _reset_wind(self, tas: float) -> None:
         """Wind from the wind triangle (:meth:`TrueAirspeed.wind_from_airspeed`) with its covariance
