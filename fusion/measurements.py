@@ -140,7 +140,8 @@ class OpticalDisplacement:
         """(matcher sigma, attitude-induced sigma) in px for one step.
 
         Matcher: ``optical_match_sigma_px / q`` with the quality ``q = clip(psr / optical_psr_ref,
-        optical_quality_floor, 1)`` (a non-finite PSR counts as the floor).  Attitude: ``focal_px`` times the
+        optical_quality_floor, 1)`` (a non-finite PSR counts as the floor), or ``optical_ssd_sigma_factor`` times the
+        match's own SSD precision ``quality.match_sigma_px`` where that is larger.  Attitude: ``focal_px`` times the
         relative attitude error between base and current frame, ``optical_att_rel_sigma_rad +
         optical_att_rel_sigma_per_rad * rel_rot_rad + optical_att_rel_sigma_rad_per_s * (t - base_t)``
         (independent of altitude: an angle error moves the image by ``f * angle`` pixels at any height).
@@ -152,7 +153,11 @@ class OpticalDisplacement:
         elapsed_s = max(0, step.t_us - step.base_t_us) * 1e-6
         att_rad = (cfg.optical_att_rel_sigma_rad + cfg.optical_att_rel_sigma_per_rad * abs(rel)
                    + cfg.optical_att_rel_sigma_rad_per_s * elapsed_s)
-        return cfg.optical_match_sigma_px / q, step.focal_px * att_rad
+        match = cfg.optical_match_sigma_px / q
+        ssd = cfg.optical_ssd_sigma_factor * step.quality.match_sigma_px
+        if ssd > match:                                   # False for nan (no SSD precision: the PSR model alone)
+            match = ssd
+        return match, step.focal_px * att_rad
 
     @staticmethod
     def noise_var_px2(step: GsoeStep, cfg: EkfConfig) -> float:

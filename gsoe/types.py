@@ -31,12 +31,18 @@ class ImuSample:
 @dataclass(frozen=True, slots=True)
 class MatchQuality:
     """Quality of one template match: peak-to-sidelobe ratio, template texture (intensity std, 0-255), SSD at the
-    best match per pixel, and the verdict."""
+    best match per pixel, and the verdict.
+
+    ``match_sigma_px``: the match position's one-sigma error (px, per axis, the root of half the covariance's
+    trace) implied by the SSD surface itself, ``C = 2 s^2 H^-1`` with ``H`` the surface's Hessian at the minimum
+    and ``s^2`` the residual SSD per pixel (:func:`gsoe.matching.ssd_precision_px`); nan where the surface is not
+    a bowl there or no match was made."""
 
     psr: float
     texture_std: float
     ssd_per_px: float
     valid: bool
+    match_sigma_px: float = math.nan
 
 
 @dataclass(frozen=True, slots=True)

@@ -702,7 +702,8 @@ class Companion:
                                "base_yaw_rad": st.base_yaw_rad, "yaw_rad": st.yaw_rad, "gsd_m_px": st.gsd_m_px,
                                "height_agl_m": st.height_agl_m, "rel_rot_rad": st.rel_rot_rad,
                                "psr": st.quality.psr, "texture_std": st.quality.texture_std,
-                               "ssd_per_px": st.quality.ssd_per_px, "valid": st.valid, "new_cycle": st.new_cycle})
+                               "ssd_per_px": st.quality.ssd_per_px, "match_sigma_px": st.quality.match_sigma_px,
+                               "valid": st.valid, "new_cycle": st.new_cycle})
         self._outputs(p.t_us, p.capture_us, steps)
         if isinstance(self.tracker, TemplateTracker):
             self._guide(p.t_us, p.frame)

@@ -129,7 +129,8 @@ def _step_record(s: GsoeStep) -> dict[str, Any]:
         "t_us": s.t_us, "base_t_us": s.base_t_us, "cycle_id": s.cycle_id, "step": s.step, "dx_px": s.dx_px,
         "dy_px": s.dy_px, "base_yaw_rad": s.base_yaw_rad, "yaw_rad": s.yaw_rad, "gsd_m_px": s.gsd_m_px,
         "height_agl_m": s.height_agl_m, "rel_rot_rad": s.rel_rot_rad, "psr": s.quality.psr,
-        "texture_std": s.quality.texture_std, "ssd_per_px": s.quality.ssd_per_px, "valid": s.valid,
+        "texture_std": s.quality.texture_std, "ssd_per_px": s.quality.ssd_per_px,
+        "match_sigma_px": s.quality.match_sigma_px, "valid": s.valid,
         "new_cycle": s.new_cycle,
     }
 

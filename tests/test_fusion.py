@@ -361,6 +361,50 @@ def test_sideslip_noise_grows_with_the_turbulence_in_use():
         math.radians(with_term.sideslip_sigma_deg) ** 2 + (2.0 * sigma_turb / v_air) ** 2, rel=1e-12)
 
 
+def test_optical_matcher_sigma_is_at_least_the_ssd_surface_precision():
+    """The matcher's sigma is the PSR model ``optical_match_sigma_px / q`` or ``optical_ssd_sigma_factor`` times the
+    match's own SSD precision, whichever is larger; nan (no precision) and factor 0 leave the PSR model alone, and
+    the innovation variance the filter uses grows by exactly the difference.  (The default factor is 0: off.)"""
+    assert EkfConfig().optical_ssd_sigma_factor == 0.0
+    on = dataclasses.replace(CFG0, optical_ssd_sigma_factor=1.0)
+    att = 350.0 * CFG0.optical_att_rel_sigma_rad  # not the subject: the same in every case below
+
+    def sigma(cfg: EkfConfig, psr: float, ssd_sigma: float) -> tuple[float, float]:
+        q = MatchQuality(psr=psr, texture_std=30.0, ssd_per_px=5.0, valid=True, match_sigma_px=ssd_sigma)
+        return OpticalDisplacement.noise_sigma_px(_step(100_000, 0, 1, 1, 3.0, 4.0, quality=q, rel_rot_rad=0.0), cfg)
+
+    psr_model = CFG0.optical_match_sigma_px                  # psr 15 >= optical_psr_ref: quality 1
+    assert sigma(on, 15.0, 0.5)[0] == pytest.approx(0.5)
+    assert sigma(on, 15.0, 0.01)[0] == pytest.approx(psr_model)          # sharp ground: the PSR model stands
+    assert sigma(on, 15.0, math.nan)[0] == pytest.approx(psr_model)
+    low_psr = psr_model / max(CFG0.optical_quality_floor, min(1.0, 2.0 / CFG0.optical_psr_ref))
+    assert low_psr > 0.15 and sigma(on, 2.0, 0.15)[0] == pytest.approx(low_psr)   # a poor PSR's sigma is larger
+    off = CFG0
+    assert sigma(off, 15.0, 0.5)[0] == pytest.approx(psr_model)
+    twice = dataclasses.replace(on, optical_ssd_sigma_factor=2.0)
+    assert sigma(twice, 15.0, 0.5)[0] == pytest.approx(1.0)
+    assert sigma(on, 15.0, 0.5)[1] == pytest.approx(att, rel=1e-9)
+    # in the filter: the same cycle's second step fused with a smooth-ground and a sharp-ground quality
+    var = {}
+    for name, ssd_sigma in (("smooth", 0.6), ("sharp", 0.01)):
+        ekf = _flying_ekf(on)
+        t0 = ekf.t_us
+        q = MatchQuality(psr=15.0, texture_std=30.0, ssd_per_px=5.0, valid=True, match_sigma_px=ssd_sigma)
+        ekf.fuse_optical(_step(t0, t0, 7, 0, 0.0, 0.0, quality=q))
+        for k in range(1, 21):
+            t = t0 + k * 5000
+            ekf.predict(ImuSample(t, np.zeros(3), G_DOWN_SPECIFIC_FORCE), AttitudeSample(t, 0.0, 0.0, 0.0))
+        ekf.fuse_optical(_step(t0 + 100_000, t0, 7, 1, 0.0, 1.0, quality=q))
+        st = ekf.status()["optical"]
+        var[name] = st.innovation_var[0]
+    m_s, a_s = OpticalDisplacement.noise_sigma_px(
+        _step(0, 0, 7, 1, 0.0, 1.0, quality=MatchQuality(15.0, 30.0, 5.0, True, 0.6)), on)
+    assert var["smooth"] - var["sharp"] == pytest.approx(0.6**2 - CFG0.optical_match_sigma_px**2, rel=1e-6)
+    assert m_s == pytest.approx(0.6)
+    with pytest.raises(ConfigError, match="ekf.optical_ssd_sigma_factor"):
+        ekf_config_from_raw({"ekf": {"optical_ssd_sigma_factor": -1.0}})
+
+
 def test_joseph_update_keeps_P_symmetric_positive_and_matches_textbook_kalman():
     """One scalar and one 2-D update against the textbook KF on the same linearisation (an independent formula)."""
     ekf = _flying_ekf()
