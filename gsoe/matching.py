@@ -209,8 +209,10 @@ def _quadratic_offset(n3: NDArray) -> tuple[float, float]:
     ``_MAX_SUBPIXEL_OFFSET_PX``, separable parabolas through the centre row and column are used instead.
     """
     (v00, v01, v02), (v10, v11, v12), (v20, v21, v22) = n3.tolist()
-    b = (v02 + v12 + v22 - v00 - v10 - v20) / 6.0
-    c = (v20 + v21 + v22 - v00 - v01 - v02) / 6.0
+    left, right = v00 + v10 + v20, v02 + v12 + v22
+    top, bottom = v00 + v01 + v02, v20 + v21 + v22
+    b = (right - left) / 6.0
+    c = (bottom - top) / 6.0
     hxx, hyy, hxy = _quadratic_hessian(n3)
     det = hxx * hyy - hxy * hxy
     lim = _MAX_SUBPIXEL_OFFSET_PX
