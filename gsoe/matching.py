@@ -193,7 +193,12 @@ def ssd_precision_px(n3: NDArray, ssd_min: float, n_px: int) -> float:
     seen at 0.35 m/px: 0.2 px against 0.03-0.05 px on the 10 cm tiles, with sensor noise of sigma 3; the errors'
     normalised squares average 1.5-1.9 on the real tiles against the chi-square's 2, tests/test_matching.py).
     """
-    hxx, hyy, hxy = _quadratic_hessian(n3)
+    return _precision_from_hessian(_quadratic_hessian(n3), ssd_min, n_px)
+
+
+def _precision_from_hessian(h: tuple[float, float, float], ssd_min: float, n_px: int) -> float:
+    """:func:`ssd_precision_px` from the fitted Hessian ``(h_xx, h_yy, h_xy)`` (the matcher computes it once)."""
+    hxx, hyy, hxy = h
     det = hxx * hyy - hxy * hxy
     if not (hxx > 0.0 and det > 0.0 and n_px > 0 and math.isfinite(ssd_min)):
         return math.nan
@@ -201,8 +206,9 @@ def ssd_precision_px(n3: NDArray, ssd_min: float, n_px: int) -> float:
     return math.sqrt(s2 * (hxx + hyy) / det)
 
 
-def _quadratic_offset(n3: NDArray) -> tuple[float, float]:
-    """Sub-pixel offset (dx, dy) of the minimum of a 3x3 SSD neighbourhood (row-major, centre at [1, 1]).
+def _quadratic_offset(n3: NDArray, h: tuple[float, float, float]) -> tuple[float, float]:
+    """Sub-pixel offset (dx, dy) of the minimum of a 3x3 SSD neighbourhood (row-major, centre at [1, 1]), given the
+    fit's Hessian ``h`` (:func:`_quadratic_hessian`).
 
     Least squares of ``a + b x + c y + d x^2 + e x y + f y^2`` on x, y in {-1, 0, 1}; on this grid the normal
     equations decouple into the column/row sums below.  When the fit is not a bowl or its bottom lies farther than
@@ -213,7 +219,7 @@ def _quadratic_offset(n3: NDArray) -> tuple[float, float]:
     top, bottom = v00 + v01 + v02, v20 + v21 + v22
     b = (right - left) / 6.0
     c = (bottom - top) / 6.0
-    hxx, hyy, hxy = _quadratic_hessian(n3)
+    hxx, hyy, hxy = h
     det = hxx * hyy - hxy * hxy
     lim = _MAX_SUBPIXEL_OFFSET_PX
     if hxx > 0.0 and det > 0.0:
@@ -437,13 +443,15 @@ def match_template(base: NDArray, template: NDArray, cfg: MatchConfig,
     psr, gap = _log_psr_and_gap(surface, lu, lv, exclude, floor)
     on_border = iu == 0 or iv == 0 or iu == nu - 1 or iv == nv - 1
     valid = (not on_border) and psr >= cfg.psr_min and tpl_std >= cfg.texture_std_min and gap >= AMBIGUITY_MIN_GAP
+    # off the border the minimum has its full 3x3 neighbourhood (the local searches' window keeps a ring round it)
     n3 = surface[lv - 1:lv + 2, lu - 1:lu + 2] if not on_border else None
-    sigma = ssd_precision_px(n3, ssd_min, th * tw) if n3 is not None and n3.shape == (3, 3) else math.nan
+    hess = _quadratic_hessian(n3) if n3 is not None else None
+    sigma = _precision_from_hessian(hess, ssd_min, th * tw) if hess is not None else math.nan
     quality = MatchQuality(psr=psr, texture_std=tpl_std, ssd_per_px=max(ssd_min, 0.0) / (th * tw),
                            valid=bool(valid), match_sigma_px=sigma)
     x, y = float(iu), float(iv)
-    if cfg.subpixel and n3 is not None:
-        dx, dy = _quadratic_offset(n3)
+    if cfg.subpixel and n3 is not None and hess is not None:
+        dx, dy = _quadratic_offset(n3, hess)
         x, y = iu + dx, iv + dy
         refined = _gauss_newton(base32, tpl32, x, y, iu, iv)
         if refined is not None:

@@ -141,8 +141,10 @@ def test_ssd_precision_tells_smooth_ground_from_sharp_ground():
     several times worse on the farmland, and far closer to the real errors there than the PSR model's 0.1-0.13 px.
     Measured (seed 5, 600 pairs): median 0.17 against 0.035 px; normalised squared errors' median 5.2 (PSR
     model: 24; the chi-square's median is 1.39)."""
+    from fusion.config import EkfConfig
     from sim.textures import GroundWorld
 
+    ekf = EkfConfig()                                         # the filter's default PSR model of the match error
     b_px, t_px, gsd = 121, T_PX, 0.35
     rr, cc = np.mgrid[0:b_px, 0:b_px].astype(np.float64)
     h = t_px // 2
@@ -166,8 +168,8 @@ def test_ssd_precision_tells_smooth_ground_from_sharp_ground():
             e2 = (m.x_px - (b_px // 2 + de / gsd)) ** 2 + (m.y_px - (b_px // 2 - dn / gsd)) ** 2
             sig.append(m.quality.match_sigma_px)
             z_ssd.append(e2 / m.quality.match_sigma_px ** 2)
-            q = min(1.0, max(0.2, m.quality.psr / 4.0))       # the EKF's default PSR model, 0.1 px / q
-            z_psr.append(e2 / (0.1 / q) ** 2)
+            q = min(1.0, max(ekf.optical_quality_floor, m.quality.psr / ekf.optical_psr_ref))
+            z_psr.append(e2 / (ekf.optical_match_sigma_px / q) ** 2)
         out[name] = (float(np.median(sig)), float(np.median(z_ssd)), float(np.median(z_psr)), len(sig))
     farm, forest = out["farmland"], out["forest_road"]
     assert farm[3] >= 8 and forest[3] >= 400, out
