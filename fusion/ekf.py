@@ -1,4 +1,5 @@
-"""The navigation EKF: IMU-driven prediction, optical displacement, airspeed, sideslip, baro and GNSS updates.
+"""The navigation EKF: IMU-driven prediction, optical displacement, airspeed, sideslip, angle-of-attack, baro and GNSS
+updates.
 
 Usage (every method documents its units; frames as in :mod:`gsoe`)::
 
@@ -59,10 +60,10 @@ Time (STYLE section 6)
     with reason ``late`` in its status.  The estimate refers to the horizon's time ``NavEstimate.t_us`` (at most
     ``fusion_delay_s + predict_period_s`` behind the newest IMU sample); give ``fusion_delay_s = 0`` when samples are
     fed in time order.  Samples with the same stamp are processed in a fixed order (IMU, GNSS, baro, airspeed +
-    sideslip, optical, clone) whatever their arrival order, so a replay with other latencies gives the same filter.
-    The synthetic sideslip uses the AHRS attitude of the last IMU sample at or before its stamp.  ``estimate()`` is
-    computed once per filter state (repeated calls without a state change return the same object, whose arrays are
-    read-only).
+    sideslip + angle of attack, optical, clone) whatever their arrival order, so a replay with other latencies gives
+    the same filter.  The synthetic sideslip and the lift-model angle of attack use the AHRS attitude of the last
+    IMU sample at or before their stamp.  ``estimate()`` is computed once per filter state (repeated calls without a
+    state change return the same object, whose arrays are read-only).
 
 Optical cycles (stochastic cloning)
     When a step of a new cycle (a new ``cycle_id``) is pushed, a *clone event* is scheduled at the cycle's
@@ -119,6 +120,7 @@ from fusion.measurements import (
     BaroAltitude,
     GnssPosition,
     GnssVelocity,
+    LiftAngleOfAttack,
     OpticalDisplacement,
     SyntheticSideslip,
     TrueAirspeed,
@@ -146,7 +148,7 @@ Q_CACHE_MAX = 256
 MIN_COS_PITCH = 1e-3
 
 #: Aid sources with a status record, in logging order.
-AID_SOURCES: tuple[str, ...] = ("imu", "optical", "airspeed", "sideslip", "baro", "gnss_pos", "gnss_vel")
+AID_SOURCES: tuple[str, ...] = ("imu", "optical", "airspeed", "sideslip", "aoa", "baro", "gnss_pos", "gnss_vel")
 
 # Status reasons (the ``reason`` field of :class:`AidStatus`).
 REASON_NON_FINITE = "non-finite input"
@@ -324,7 +326,8 @@ class NavEstimate:
     positive, turbulence: :mod:`fusion.state`).  Angle sigmas are capped at pi where the angle is undefined (speed
     near zero).
     ``yaw_bias_rad``, ``opt_rot_rad``, ``baro_bias_m``, ``terrain_h_m``, ``tas_scale``, ``accel_bias_b_m_s2``,
-    ``side_force_ofs_m_s2``: the calibration states (:mod:`fusion.state`).  ``wind_turb_sigma_m_s``: the
+    ``side_force_ofs_m_s2``, ``aoa_ofs_rad``: the calibration states (:mod:`fusion.state`).
+    ``wind_turb_sigma_m_s``: the
     turbulence level the wind model uses now (per axis, adapted in flight).  ``cov_pvw`` is the 6x6 covariance of
     ``[pos_ne, vel_ne, wind_ne]`` (for NEES).  ``valid`` is false with ``invalid_reason`` when the output should not
     be used (see :class:`~fusion.config.EkfConfig`).
@@ -364,6 +367,7 @@ class NavEstimate:
     terrain_h_m: float
     tas_scale: float
     side_force_ofs_m_s2: float
+    aoa_ofs_rad: float
     wind_turb_sigma_m_s: float
     cov_pvw: Mat
     valid: bool
@@ -396,7 +400,8 @@ class NavEstimate:
             accel_bias_z_m_s2=float(self.accel_bias_b_m_s2[2]), yaw_bias_rad=self.yaw_bias_rad,
             opt_rot_rad=self.opt_rot_rad,
             baro_bias_m=self.baro_bias_m, terrain_h_m=self.terrain_h_m, tas_scale=self.tas_scale,
-            side_force_ofs_m_s2=self.side_force_ofs_m_s2, wind_turb_sigma_m_s=self.wind_turb_sigma_m_s,
+            side_force_ofs_m_s2=self.side_force_ofs_m_s2, aoa_ofs_rad=self.aoa_ofs_rad,
+            wind_turb_sigma_m_s=self.wind_turb_sigma_m_s,
             valid=self.valid, invalid_reason=self.invalid_reason,
         )
         return r
@@ -621,7 +626,8 @@ class _FilterCore(ExtendedKalmanFilter):
                         ("yaw_bias", cfg.yaw_bias_rw_rad_per_rt_s), ("opt_rot", cfg.opt_rot_rw_rad_per_rt_s),
                         ("baro_bias", cfg.baro_bias_rw_m_per_rt_s), ("terrain_h", cfg.terrain_rw_m_per_rt_s),
                         ("tas_scale", cfg.tas_scale_rw_per_rt_s), ("att_delay", cfg.att_delay_rw_s_per_rt_s),
-                        ("side_force_ofs", cfg.side_force_ofs_rw_m_s2_per_rt_s)):
+                        ("side_force_ofs", cfg.side_force_ofs_rw_m_s2_per_rt_s),
+                        ("aoa_ofs", cfg.aoa_ofs_rw_rad_per_rt_s)):
             rw[getattr(S, name)] = q * q
         self._rw_var_rate = rw
         self.n_predictions = 0
@@ -818,6 +824,9 @@ class NavEkf:
         self._lat_f = math.nan                           # NaN until the first IMU sample
         self._lat_rate_per_s = 1.0 / cfg.sideslip_accel_tau_s if cfg.sideslip_accel_tau_s > 0.0 else math.inf
         self._beta_gain_m = cfg.sideslip_accel_gain_m if cfg.sideslip_fusion else 0.0
+        # normal specific force (body z, m/s^2), low-passed alike: the lift-model angle of attack
+        self._nrm_f = math.nan
+        self._alpha_gain_m = cfg.aoa_accel_gain_m if cfg.aoa_fusion else 0.0
         self._att: AttitudeSample | None = None          # AHRS attitude of the last processed IMU sample
         self._att_out: AttitudeSample | None = None      # first pushed attitude (output before any is processed)
         self._Rl: tuple[float, ...] | None = None        # its rotation (body to AHRS-NED), row by row
@@ -935,7 +944,8 @@ class NavEkf:
 
     def fuse_airspeed(self, t_us: int, tas_m_s: float) -> None:
         """Push a true airspeed sample (m/s) measured at ``t_us``; the sideslip pseudo-measurement (side-force
-        sideslip, or zero) is fused with it (``cfg.sideslip_fusion``)."""
+        sideslip, or zero) is fused with it (``cfg.sideslip_fusion``), and so is the lift-model angle of attack
+        (``cfg.aoa_fusion``)."""
         if self._admit("airspeed", t_us, tas_m_s):
             self._push(t_us, "airspeed", float(tas_m_s))
 
@@ -1097,9 +1107,10 @@ class NavEkf:
         n_fused = row.n_fused
         gap = False
         fx = fy = fz = wx = wy = wz = gx = gy = gz = 0.0
-        lat, lat_rate = self._lat_f, self._lat_rate_per_s
+        lat, lat_rate, nrm = self._lat_f, self._lat_rate_per_s, self._nrm_f
         if math.isnan(lat) and q:
             lat = q[0][2]                                 # the low-pass starts at the first sample's f_y
+            nrm = q[0][3]                                 # ... and f_z
         t = t_in
         while q and q[0][0] <= t_end:
             t, fx, fy, fz, gx, gy, gz, att = q.popleft()
@@ -1121,7 +1132,9 @@ class NavEkf:
             n_fused += 1
             if dt_us > 0:
                 dt = dt_us * S_PER_US
-                lat += (fy - lat) * min(1.0, dt * lat_rate)
+                k_lp = min(1.0, dt * lat_rate)
+                lat += (fy - lat) * k_lp
+                nrm += (fz - nrm) * k_lp
                 mid = (t + t_in - 2 * t_x) * (0.5 * S_PER_US)
                 ax, ay, az = fx * dt, fy * dt, fz * dt
                 s0 += ax
@@ -1152,6 +1165,7 @@ class NavEkf:
         self._seg_open, self._t_in_us = opened, t_in
         self._att = a0
         self._lat_f = lat
+        self._nrm_f = nrm
         if n_fused == row.n_fused:
             return
         self._f_held = (fx, fy, fz, wx, wy, wz)
@@ -1401,6 +1415,7 @@ class NavEkf:
         var[S.tas_scale] = c.init_tas_scale_sigma**2
         var[S.att_delay] = c.init_att_delay_sigma_s**2
         var[S.side_force_ofs] = c.init_side_force_ofs_sigma_m_s2**2
+        var[S.aoa_ofs] = math.radians(c.init_aoa_ofs_sigma_deg)**2
         var[S.base_pos_ne] = c.init_pos_ne_sigma_m**2
         var[S.base_pos_d] = c.init_pos_d_sigma_m**2
         return var
@@ -1430,6 +1445,7 @@ class NavEkf:
         if tas < c.tas_min_m_s:
             self._st["airspeed"].set(t, reason=REASON_LOW_AIRSPEED)
             self._st["sideslip"].set(t, reason=REASON_LOW_AIRSPEED)
+            self._st["aoa"].set(t, reason=REASON_LOW_AIRSPEED)
             return
         if self._wind_reset_pending and self._att is not None:
             self._reset_wind(tas)
@@ -1460,6 +1476,17 @@ class NavEkf:
                 z_hat, h = SyntheticSideslip(self._R_nb, k_beta).row(self._kf.x)
                 self._fuse1(self._st["sideslip"], t, z_hat, h, z_beta,
                             SyntheticSideslip.variance(c, kf.turb_var, v_air), c.gate_sideslip_nis)
+        if self._alpha_gain_m:
+            if self._Rl is None or math.isnan(self._nrm_f):
+                self._st["aoa"].set(t, reason=REASON_NO_ATTITUDE)
+            else:
+                if self._R_nb is None:
+                    self._R_nb = np.array(self._Rl).reshape(3, 3)
+                v_air = max(tas / (1.0 + float(kf.x[_I_SCALE])), c.tas_min_m_s)
+                z_alpha = LiftAngleOfAttack.measured(c, self._nrm_f, v_air)
+                z_hat, h = LiftAngleOfAttack(self._R_nb, self._alpha_gain_m / (v_air * v_air)).row(kf.x)
+                self._fuse1(self._st["aoa"], t, z_hat, h, z_alpha,
+                            LiftAngleOfAttack.variance(c, kf.turb_var, v_air), c.gate_aoa_nis)
 
     def _reset_wind(self, tas: float) -> None:
         """Wind from the wind triangle (:meth:`TrueAirspeed.wind_from_airspeed`) with its covariance
@@ -1642,7 +1669,7 @@ class NavEkf:
             accel_bias_b_m_s2=xr[S.accel_bias_b], yaw_bias_rad=yb, opt_rot_rad=xl[S.opt_rot.start],
             baro_bias_m=xl[S.baro_bias.start],
             terrain_h_m=xl[ith], tas_scale=xl[S.tas_scale.start], side_force_ofs_m_s2=xl[S.side_force_ofs.start],
-            wind_turb_sigma_m_s=math.sqrt(self._kf.turb_var),
+            aoa_ofs_rad=xl[S.aoa_ofs.start], wind_turb_sigma_m_s=math.sqrt(self._kf.turb_var),
             cov_pvw=_read_only(P[_IX_PVW]),
             valid=valid, invalid_reason=why,
         )

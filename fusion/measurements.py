@@ -54,6 +54,8 @@ _PD, _YB, _BB, _TH, _TS = S.pos_d.start, S.yaw_bias.start, S.baro_bias.start, S.
 _OR = S.opt_rot.start
 _BAY = S.accel_bias_b.start + 1
 _SFO = S.side_force_ofs.start
+_BAZ = S.accel_bias_b.start + 2
+_AOF = S.aoa_ofs.start
 # the same indices in the second row of a flattened 2 x n Jacobian
 _N2, _E2, _BN2, _BE2, _BD2, _TH2, _YB2, _OR2 = (S.dim + i for i in (_N, _E, _BN, _BE, _BD, _TH, _YB, _OR))
 
@@ -317,6 +319,78 @@ class SyntheticSideslip:
     @staticmethod
     def noise(cfg: EkfConfig, turb_var_m2_s2: float = 0.0, airspeed_m_s: float = math.inf) -> Mat:
         return np.array([[SyntheticSideslip.variance(cfg, turb_var_m2_s2, airspeed_m_s)]])
+
+
+# --------------------------------------------------------------------------------------------------------------
+@dataclass(frozen=True, slots=True)
+class LiftAngleOfAttack:
+    """Angle-of-attack pseudo-measurement from the lift (rad, ``atan(v_air_b_z / v_air_b_x)``).
+
+    The wing's lift is what the accelerometer's normal channel reads: ``-m f_z = q S (C_L0 + C_Lalpha alpha)``
+    (FRD, ``f_z`` about ``-g`` in level flight), so ``alpha = -2 m f_z / (rho S C_Lalpha V^2) - C_L0 / C_Lalpha``,
+    with ``f_z`` low-passed like the sideslip's lateral force and ``V`` the pitot airspeed corrected by the scale
+    state.  What it adds: with the airspeed and the sideslip it fixes the body-frame air velocity's third component,
+    so the vertical air velocity, and with the ground's vertical velocity the vertical wind, which in a bank is
+    sideslip and so cross-heading wind (:mod:`fusion.state`, ``wind_d``).
+
+    The predicted angle uses the AHRS attitude corrected by the heading error, as :class:`SyntheticSideslip` does.
+    The measured value holds the accelerometer's z bias and whatever offsets the lift model and the AHRS pitch have,
+    so the prediction is ``alpha(x) - accel_gain_rad_per_m_s2 * accel_bias_z + aoa_ofs`` (measured ``f_z`` = true +
+    bias; ``accel_gain_rad_per_m_s2`` is :attr:`~fusion.config.EkfConfig.aoa_accel_gain_m` over ``V^2``, one model
+    per sample).
+    """
+
+    R_nb_ahrs: Mat
+    accel_gain_rad_per_m_s2: float
+
+    def predict(self, x: Vec) -> Vec:
+        return np.array([self.row(x)[0]])
+
+    def jacobian(self, x: Vec) -> Mat:
+        return self.linearise(x)[1]
+
+    def linearise(self, x: Vec) -> tuple[Vec, Mat]:
+        z, h = self.row(x)
+        return np.array([z]), h[None, :]
+
+    def row(self, x: Vec) -> tuple[float, Vec]:
+        """``(z_hat, h)``: the predicted angle-of-attack measurement (rad) and the Jacobian row (n,)."""
+        xl = x.tolist()
+        an, ae, ad = xl[_VN] - xl[_WN], xl[_VE] - xl[_WE], xl[_VD] - xl[_WD]
+        c, s = math.cos(xl[_YB]), math.sin(xl[_YB])
+        wn, we = c * an - s * ae, s * an + c * ae            # R_z(yaw_bias) v_air (N, E)
+        (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = self.R_nb_ahrs.tolist()
+        vbx = max(r00 * wn + r10 * we + r20 * ad, MIN_AIR_SPEED_M_S)     # column 0 of R_nb: body x in NED
+        vbz = r02 * wn + r12 * we + r22 * ad                 # column 2: body z
+        q = 1.0 / (vbx * vbx + vbz * vbz)
+        gx, gz = -vbz * q, vbx * q                           # d atan(vb_z / vb_x) / d(vb_x, vb_z)
+        dw = (gx * r00 + gz * r02, gx * r10 + gz * r12, gx * r20 + gz * r22)
+        dn, de = c * dw[0] + s * dw[1], -s * dw[0] + c * dw[1]
+        h = np.zeros(S.dim)
+        h[_VN], h[_VE], h[_VD], h[_WN], h[_WE], h[_WD] = dn, de, dw[2], -dn, -de, -dw[2]
+        h[_YB] = dw[0] * -we + dw[1] * wn                   # d w / d yaw_bias = (-w_E, w_N, 0)
+        k = self.accel_gain_rad_per_m_s2
+        h[_BAZ] = -k
+        h[_AOF] = 1.0
+        return math.atan2(vbz, vbx) - k * xl[_BAZ] + xl[_AOF], h
+
+    @staticmethod
+    def measured(cfg: EkfConfig, normal_force_m_s2: float, airspeed_m_s: float) -> float:
+        """The lift-model angle of attack (rad) from the low-passed normal specific force (FRD z, m/s^2) and the
+        corrected airspeed (m/s)."""
+        return -cfg.aoa_accel_gain_m * normal_force_m_s2 / (airspeed_m_s * airspeed_m_s) - cfg.aoa_zero_lift_rad
+
+    @staticmethod
+    def variance(cfg: EkfConfig, turb_var_m2_s2: float = 0.0, airspeed_m_s: float = math.inf) -> float:
+        """Measurement variance (rad^2): ``aoa_sigma_rad^2`` plus the vertical turbulence the wind state does not
+        follow, seen as an angle at the airspeed:
+        ``(aoa_turb_noise_factor * wind_d_sigma_ratio * sigma_turb / V)^2``."""
+        return (cfg.aoa_sigma_rad**2
+                + (cfg.aoa_turb_noise_factor * cfg.wind_d_sigma_ratio)**2 * turb_var_m2_s2 / airspeed_m_s**2)
+
+    @staticmethod
+    def noise(cfg: EkfConfig, turb_var_m2_s2: float = 0.0, airspeed_m_s: float = math.inf) -> Mat:
+        return np.array([[LiftAngleOfAttack.variance(cfg, turb_var_m2_s2, airspeed_m_s)]])
 
 
 _H_BARO = np.zeros(S.dim)

@@ -57,6 +57,10 @@ EKF profile (:data:`REPLAY_EKF_PROFILE`, on top of ``[ekf]``; the ``[replay.ekf]
     and differed from the autopilot's by 1.5 m/s RMS).  ``tas_sigma_m_s = 1.0``: with a steady wind the gusts are
     airspeed noise (ArduPilot uses 1.4);
     1.0 gives a mean airspeed NIS of about 1 on the ALFA engine-failure log.
+    ``aoa_fusion = false``: the vertical wind's sigma is a ratio of the turbulence's, so with the turbulence off the
+    ``wind_d`` state is pinned, and the lift-model angle of attack could then only move the vertical velocity
+    (:class:`~fusion.config.EkfConfig`).  On the ALFA engine-failure log with it on (and the simulated Talon's lift
+    curve, not this airframe's) the wind was 1.07 m/s RMS from the autopilot's against 0.90.
     GNSS samples are moved back by ``replay.gnss_delay_s`` (0.2 s, ArduPilot's default GPS lag): logged fixes carry
     the time they reached the autopilot; on the ALFA log the wind triangle ``v_gnss - tas * heading`` varies least
     with the GNSS velocity taken 0.15-0.2 s earlier than its stamp.
@@ -123,6 +127,7 @@ REPLAY_EKF_PROFILE: dict[str, float] = {
     "wind_turb_sigma_min_m_s": 0.001,
     "wind_turb_adapt_time_s": 0.0,
     "tas_sigma_m_s": 1.0,
+    "aoa_fusion": False,
 }
 
 

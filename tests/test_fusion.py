@@ -17,6 +17,7 @@ from fusion.measurements import (
     BaroAltitude,
     GnssPosition,
     GnssVelocity,
+    LiftAngleOfAttack,
     OpticalDisplacement,
     SyntheticSideslip,
     TrueAirspeed,
@@ -108,6 +109,17 @@ def test_ekf_config_from_file_defaults_and_errors():
         ekf_config_from_raw({"ekf": {"sideslip_turb_noise_factor": -1.0}})
     with pytest.raises(ConfigError, match="ekf.wind_turb_adapt_var_weight"):
         ekf_config_from_raw({"ekf": {"wind_turb_adapt_var_weight": 1.5}})
+    with pytest.raises(ConfigError, match="ekf.aoa_sigma_deg"):
+        ekf_config_from_raw({"ekf": {"aoa_sigma_deg": 0.0}})
+    with pytest.raises(ConfigError, match="ekf.aoa_lift_slope_per_rad"):
+        ekf_config_from_raw({"ekf": {"aoa_lift_slope_per_rad": -4.5}})
+    with pytest.raises(ConfigError, match="ekf.aoa_lift_coef_zero"):
+        ekf_config_from_raw({"ekf": {"aoa_lift_coef_zero": 5.0}})
+    with pytest.raises(ConfigError, match="ekf.init_aoa_ofs_sigma_deg"):
+        ekf_config_from_raw({"ekf": {"init_aoa_ofs_sigma_deg": 0.0}})
+    with pytest.raises(ConfigError, match="ekf.aoa_fusion"):
+        ekf_config_from_raw({"ekf": {"wind_d_sigma_ratio": 0.0}})
+    assert ekf_config_from_raw({"ekf": {"wind_d_sigma_ratio": 0.0, "aoa_fusion": False}}).wind_d_sigma_ratio == 0.0
 
 
 def test_fast_rotation_matches_gsoe_rotation():
@@ -123,7 +135,8 @@ def test_measurement_jacobians_match_finite_differences(seed):
     va = x[S.vel_ne] - x[S.wind_ne]
     R_nb = R_nb_from_euler(*rng.uniform(-0.4, 0.4, 2), math.atan2(va[1], va[0]) + rng.uniform(-0.3, 0.3))
     models = [OpticalDisplacement(focal_px=351.86, base_yaw_rad=rng.uniform(-3, 3)), TrueAirspeed(),
-              SyntheticSideslip(R_nb), SyntheticSideslip(R_nb, accel_gain_rad_per_m_s2=-0.1), BaroAltitude(),
+              SyntheticSideslip(R_nb), SyntheticSideslip(R_nb, accel_gain_rad_per_m_s2=-0.1),
+              LiftAngleOfAttack(R_nb, accel_gain_rad_per_m_s2=0.02), BaroAltitude(),
               GnssPosition(3), GnssPosition(2), GnssVelocity(3), GnssVelocity(2)]
     for m in models:
         H = m.jacobian(x)
@@ -335,6 +348,37 @@ def test_side_force_sideslip_measures_the_lateral_specific_force():
     expect = gain_m * f_y / v_air**2
     assert innov["on"][0] - innov["off"][0] == pytest.approx(expect, rel=0.02)
     assert abs(expect) > 0.03                                 # a reading of degrees, not noise
+
+
+def test_lift_angle_of_attack_measures_the_normal_specific_force():
+    """The angle-of-attack reading is ``-2 m f_z / (rho S C_Lalpha V^2) - C_L0 / C_Lalpha`` of the low-passed normal
+    specific force, and the filter predicts the angle between the body x axis and the air velocity.  Steady level
+    flight at 20 m/s with the AHRS pitched up 3 deg and the accelerometer reading ``-g cos(theta)`` along body z: the
+    innovation is the lift angle written out from the airframe numbers less the 3 deg of pitch (the airspeed and
+    sideslip updates before it have zero innovations, so the state is the initial one).  With the measurement off
+    the ``aoa`` source never fuses."""
+    on = dataclasses.replace(CFG0, aoa_fusion=True, aoa_lift_slope_per_rad=5.0, aoa_lift_coef_zero=0.2,
+                             airframe_mass_kg=4.0, airframe_wing_area_m2=0.5, air_density_kg_m3=1.2,
+                             sideslip_accel_tau_s=0.05)
+    off = dataclasses.replace(on, aoa_fusion=False)
+    theta, tas, g = math.radians(3.0), 20.0, 9.80665
+    f_b = np.array([g * math.sin(theta), 0.0, -g * math.cos(theta)])     # level, unaccelerated
+    status = {}
+    for name, cfg in (("on", on), ("off", off)):
+        ekf = NavEkf(cfg, t_us=0, pos_ned_m=[0.0, 0.0, -100.0], vel_ned_m_s=[tas, 0.0, 0.0], wind_ne_m_s=(0.0, 0.0))
+        for k in range(1, 201):
+            t = k * 5000
+            ekf.predict(ImuSample(t, np.zeros(3), f_b), AttitudeSample(t, 0.0, theta, 0.0))
+        ekf.fuse_airspeed(1_000_000, tas)
+        status[name] = ekf.status()["aoa"]
+    alpha_lift = (2.0 * 4.0 * g * math.cos(theta) / (1.2 * 0.5 * tas**2) - 0.2) / 5.0
+    st = status["on"]
+    assert st.fused, st
+    assert st.innovation[0] == pytest.approx(alpha_lift - theta, rel=1e-6)
+    assert abs(alpha_lift - theta) > math.radians(0.5)                   # a reading, not noise
+    assert not status["off"].fused and status["off"].n_fused == 0
+    assert LiftAngleOfAttack.variance(on, 2.0, 20.0) == pytest.approx(
+        math.radians(on.aoa_sigma_deg) ** 2 + (on.aoa_turb_noise_factor * on.wind_d_sigma_ratio) ** 2 * 2.0 / 400.0)
 
 
 def test_sideslip_noise_grows_with_the_turbulence_in_use():
@@ -601,7 +645,8 @@ def test_partial_update_is_the_joseph_form_of_the_scaled_gain():
     """An airspeed update with the partial-update (Schmidt) airspeed scale against the textbook Joseph form
     (I - K H) P (I - K H)' + K R K' with K = D P H' S^-1 (an independent formula), after turns have correlated the
     scale with the wind."""
-    cfg = dataclasses.replace(CFG0, sideslip_fusion=False, tas_scale_update_fraction=0.2, tas_scale_calm_fraction=0.2)
+    cfg = dataclasses.replace(CFG0, sideslip_fusion=False, aoa_fusion=False, tas_scale_update_fraction=0.2,
+                              tas_scale_calm_fraction=0.2)
     ekf = NavEkf(cfg, t_us=0, pos_ned_m=[0.0, 0.0, -100.0], vel_ned_m_s=[20.0, 0.0, 0.0], wind_ne_m_s=[1.0, -2.0])
     samples = _turn_samples(400, 5000, math.radians(15.0), 0.5, np.array([0.0, 0.0, -9.80665 / math.cos(0.5)]))
     for k, (imu, att) in enumerate(samples):

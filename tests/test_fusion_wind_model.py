@@ -93,7 +93,7 @@ def test_vertical_wind_relaxes_to_zero_with_its_correlation_time():
 def test_vertical_wind_off_leaves_the_filter_as_without_it():
     """``wind_d_sigma_ratio = 0`` pins the vertical wind at 0 with no variance: the airspeed and sideslip then see
     the vertical ground speed as the vertical air velocity (the horizontal-wind model of PX4 EKF2 and ArduPilot)."""
-    cfg = dataclasses.replace(EkfConfig(), fusion_delay_s=0.0, wind_d_sigma_ratio=0.0)
+    cfg = dataclasses.replace(EkfConfig(), fusion_delay_s=0.0, wind_d_sigma_ratio=0.0, aoa_fusion=False)
     ekf = NavEkf(cfg, t_us=0, pos_ned_m=[0.0, 0.0, -100.0], vel_ned_m_s=[20.0, 0.0, -2.0], wind_ne_m_s=[1.0, 0.0])
     _level_north(ekf, 0, 5_000_000, tas_m_s=18.0)
     iw = S.wind_d.start
