@@ -92,7 +92,15 @@ def _print_goals(summary: dict[str, Any]) -> None:
 
 
 def _refly(args: argparse.Namespace) -> int:
-    from nav.montecarlo import CAMPAIGN_FILE, load_campaign_spec, load_spec, refly
+    from nav.montecarlo import (
+        CAMPAIGN_FILE,
+        code_fingerprint,
+        load_campaign_spec,
+        load_spec,
+        read_record,
+        refly,
+        run_path,
+    )
 
     if args.out is None:
         return _fail("--only needs --out DIR, the campaign folder")
@@ -112,6 +120,10 @@ def _refly(args: argparse.Namespace) -> int:
     if diffs is None:
         print("no campaign record of this run to compare with")
         return 0 if rec.status == "ok" else 1
+    flown_by = read_record(run_path(args.out, args.only)).code
+    if flown_by != code_fingerprint():
+        print(f"note: the campaign's record was flown by code {flown_by or '(not recorded)'}, this re-flight by "
+              f"{code_fingerprint()}: differences may come from the code")
     if diffs:
         print(f"DIFFERS from the campaign's record in: {', '.join(diffs)}")
         return 1

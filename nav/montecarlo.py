@@ -3,7 +3,9 @@
 A campaign flies ``n_runs`` variations of a base scenario.  Run ``i`` draws its parameters from the distributions
 of a *spec* file (``config/montecarlo/*.toml``) with generators seeded from ``(base_seed, i)`` only, and flies
 with the seed :func:`run_seed` ``(base_seed, i)``; so any run can be re-flown alone, bit for bit
-(``gsoe montecarlo --only I --out DIR``).
+(``gsoe montecarlo --only I --out DIR``), by the same code: every record carries :func:`code_fingerprint`, the hash
+of the files that decide a flight (the packages and ``config/``), and a re-flight says when it differs (a record
+flown by other code may differ in the last digits).
 
 Spec file layout (validated like every config: errors name the field, ``params."wind.speed_m_s".low: ...``)::
 
@@ -49,6 +51,8 @@ import concurrent.futures as cf
 import contextlib
 import copy
 import dataclasses
+import functools
+import hashlib
 import importlib
 import importlib.util
 import json
@@ -87,6 +91,10 @@ RUNS_DIR = "runs"
 CAMPAIGN_FILE = "campaign.json"
 SUMMARY_FILE = "summary.json"
 CAMPAIGN_FORMAT = 1
+#: Folders (beside ``config/``) whose files decide a flight: hashed by :func:`code_fingerprint`.
+CODE_PACKAGES = ("gsoe", "fusion", "sim", "nav", "config")
+#: Hex digits of the SHA-256 kept as the fingerprint.
+CODE_FINGERPRINT_HEX = 16
 MAX_RUNS = 1_000_000
 # Lists longer than this in a run's metrics are not kept in its record (100 runs must not fill the disk).
 MAX_METRIC_LIST_LEN = 20_000
@@ -572,6 +580,8 @@ class RunRecord:
     peak_rss_mb: float = math.nan
     worker: str = ""
     dropped_keys: list[str] = field(default_factory=list)
+    #: :func:`code_fingerprint` of the code that flew it ("" in records written before it existed)
+    code: str = ""
 
     def to_dict(self) -> dict[str, Any]:
         return _plain(dataclasses.asdict(self))
@@ -591,6 +601,22 @@ class RunRecord:
                 "duration_s": self.duration_s, "status": self.status, "params": self.params,
                 "features": self.features, "error": self.error,
                 "metrics": {k: v for k, v in self.metrics.items() if not is_timing_key(k)}}
+
+
+@functools.cache
+def code_fingerprint() -> str:
+    """First :data:`CODE_FINGERPRINT_HEX` hex digits of the SHA-256 of the files under :data:`CODE_PACKAGES` (their
+    paths relative to the tree and their bytes, in sorted order; compiled caches left out): two runs with the same
+    seed and parameters fly the same flight when their fingerprints match (and the libraries are the same)."""
+    root = CONFIG_DIR.parent
+    files = sorted(f for pkg in CODE_PACKAGES for f in (root / pkg).rglob("*")
+                   if f.is_file() and "__pycache__" not in f.parts and f.suffix != ".pyc")
+    h = hashlib.sha256()
+    for f in files:
+        h.update(f.relative_to(root).as_posix().encode())
+        h.update(b"\0")
+        h.update(f.read_bytes())
+    return h.hexdigest()[:CODE_FINGERPRINT_HEX]
 
 
 def is_timing_key(key: str) -> bool:
@@ -634,7 +660,7 @@ def run_one(spec: MonteCarloSpec | str | Path, base_seed: int, i: int, duration_
     sp = spec if isinstance(spec, MonteCarloSpec) else load_spec(spec)
     dur = float(sp.duration_s if duration_s is None else duration_s)
     rec = RunRecord(index=i, base_seed=base_seed, run_seed=run_seed(base_seed, i), duration_s=dur, status="failed",
-                    worker=f"{socket.gethostname()}:{os.getpid()}")
+                    worker=f"{socket.gethostname()}:{os.getpid()}", code=code_fingerprint())
     try:
         rec.params = _plain(draw_run_params(sp, base_seed, i))
         scn = scenario_for_run(sp, rec.params, dur)
@@ -961,7 +987,7 @@ def run_campaign(spec: MonteCarloSpec, out_dir: str | Path, *, indices: Iterable
         wall = time.perf_counter() - t0
         camp["sessions"].append({"started_utc": started, "wall_s": wall, "flown": len(flown),
                                  "failed": len(failed), "sim_s": sim_s_flown[0], "backend": backend,
-                                 "workers": n_workers})
+                                 "workers": n_workers, "code": code_fingerprint()})
         write_json(out / CAMPAIGN_FILE, camp)
     write_summary(out, spec)
     if report:

@@ -26,6 +26,7 @@ from nav.montecarlo import (
     _diff,
     _nees_summary,
     _plain,
+    code_fingerprint,
     draw_run_params,
     is_timing_key,
     load_campaign_spec,
@@ -412,13 +413,54 @@ def test_refly_one_run_reproduces_it_bit_for_bit(campaigns: Mapping[str, Any], c
     # a second re-flight starts a fresh folder: the first one's files are kept beside it, not appended to
     first = {f.name: f.read_bytes() for f in (c["local"] / "reflown" / "run_00001").iterdir() if f.is_file()}
     assert main(["montecarlo", "--only", "1", "--out", str(c["local"])]) == 0
-    assert "identical to the campaign's record" in capsys.readouterr().out
+    text = capsys.readouterr().out
+    assert "identical to the campaign's record" in text and "flown by code" not in text
+    assert again.code == redo.code == code_fingerprint() and len(again.code) == 16
     kept = c["local"] / "reflown" / "run_00001.old1"
     assert {f.name: f.read_bytes() for f in kept.iterdir() if f.is_file()} == first
     csvs = list((c["local"] / "reflown" / "run_00001").glob("*.csv"))
     assert csvs or c["kind"] != "real"                                          # the simulator writes CSV logs
     for f in csvs:
         assert f.read_bytes().count(b"\n") == first[f.name].count(b"\n"), f.name
+
+
+def test_code_fingerprint_follows_the_files_and_a_refly_names_other_code(campaigns: Mapping[str, Any],
+                                                                         capsys: pytest.CaptureFixture,
+                                                                         tmp_path: Path) -> None:
+    """The fingerprint is the SHA-256 of the packages' and config's files (recomputed here from the files, and it
+    moves when one byte of one of them does), and a re-flight of a record flown by other code says so."""
+    import hashlib
+
+    from nav import montecarlo as mc
+    from nav.cli import main
+
+    root = Path(mc.__file__).resolve().parent.parent
+    files = sorted(f for pkg in mc.CODE_PACKAGES for f in (root / pkg).rglob("*")
+                   if f.is_file() and "__pycache__" not in f.parts and f.suffix != ".pyc")
+    assert any(f.name == "ekf.py" for f in files) and any(f.name == "default.toml" for f in files)
+
+    def digest(changed: Path | None) -> str:
+        h = hashlib.sha256()
+        for f in files:
+            h.update(f.relative_to(root).as_posix().encode() + b"\0")
+            h.update(f.read_bytes() + (b"#" if f == changed else b""))
+        return h.hexdigest()[:16]
+
+    assert code_fingerprint() == digest(None)
+    assert digest(files[0]) != digest(None)
+    # a record flown by other code: the re-flight still compares, and names the code
+    c = campaigns
+    path = run_path(c["local"], 2)
+    original = path.read_text()
+    rec = json.loads(original)
+    rec["code"] = "0123456789abcdef"
+    path.write_text(json.dumps(rec))
+    try:
+        main(["montecarlo", "--only", "2", "--out", str(c["local"])])
+    finally:
+        path.write_text(original)                  # the module's other tests read this campaign
+    text = capsys.readouterr().out
+    assert "flown by code 0123456789abcdef" in text and code_fingerprint() in text
 
 
 def test_gsoe_sim_command_of_the_report_reflies_the_run(campaigns: Mapping[str, Any],
