@@ -210,9 +210,11 @@ class EkfConfig:
         ``(aoa_turb_noise_factor * wind_d_sigma_ratio * sigma_turb / V)^2``: its noise (the vertical turbulence the
         ``wind_d`` state does not follow, the counterpart of the sideslip's term).  ``aoa_ofs_rw_deg_per_rt_s``,
         ``init_aoa_ofs_sigma_deg``: the offset state (an installation constant: the lift model's offset, the part of
-        an AHRS pitch error fixed in the body).  It needs the vertical wind state (``wind_d_sigma_ratio`` > 0):
-        without it the angle could only move the vertical velocity (a paper_sil flight in moderate turbulence: wind
-        1.29 m/s off and the GNSS velocity rejected), so the config refuses that pair.
+        an AHRS pitch error fixed in the body).  ``aoa_max_deg``: a reading beyond it is not fused (status reason
+        "lift-model angle of attack outside ..."): the lift curve is linear only below the stall (the Talon's to
+        about 10 deg), so a stall or a hard pull would read wrong.  It needs the vertical wind state
+        (``wind_d_sigma_ratio`` > 0): without it the angle could only move the vertical velocity (a paper_sil flight
+        in moderate turbulence: wind 1.29 m/s off and the GNSS velocity rejected), so the config refuses that pair.
         Why: the airspeed and the sideslip fix two components of the body-frame air velocity; the angle of attack
         fixes the third, so the vertical air velocity and with the ground's vertical velocity the vertical wind,
         which in a bank is sideslip and so cross-heading wind (``wind_d``, :mod:`fusion.state`).  Before it the
@@ -339,6 +341,7 @@ class EkfConfig:
     aoa_lift_coef_zero: float = 0.15
     aoa_sigma_deg: float = 1.0
     aoa_turb_noise_factor: float = 1.4
+    aoa_max_deg: float = 10.0
     baro_sigma_m: float = 1.0
     gnss_pos_ne_sigma_m: float = 1.5
     gnss_pos_d_sigma_m: float = 3.0
@@ -399,6 +402,7 @@ class EkfConfig:
             "init_side_force_ofs_sigma_m_s2": (1e-5, 5.0),
             "init_aoa_ofs_sigma_deg": (1e-3, 30.0),
             "aoa_sigma_deg": (1e-3, 90.0),
+            "aoa_max_deg": (0.1, 45.0),
             "tas_sigma_m_s": (1e-3, 20.0),
             "sideslip_sigma_deg": (1e-3, 90.0),
             "airframe_mass_kg": (0.05, 1000.0),

@@ -173,6 +173,7 @@ REASON_BAD_FOCAL = "focal_px not positive"
 REASON_LOW_AIRSPEED = "airspeed below tas_min_m_s"
 REASON_NO_ATTITUDE = "no attitude yet"
 REASON_WIND_RESET = "wind reset from the wind triangle (first airspeed sample)"
+REASON_AOA_RANGE = "lift-model angle of attack outside aoa_max_deg (lift curve not linear there)"
 
 # Processing order of buffered events with the same stamp (independent of arrival order, so a replay with other
 # latencies gives the same filter): the IMU sample first (the state is predicted to the stamp), then GNSS, baro,
@@ -827,6 +828,7 @@ class NavEkf:
         # normal specific force (body z, m/s^2), low-passed alike: the lift-model angle of attack
         self._nrm_f = math.nan
         self._alpha_gain_m = cfg.aoa_accel_gain_m if cfg.aoa_fusion else 0.0
+        self._alpha_max_rad = math.radians(cfg.aoa_max_deg)
         self._att: AttitudeSample | None = None          # AHRS attitude of the last processed IMU sample
         self._att_out: AttitudeSample | None = None      # first pushed attitude (output before any is processed)
         self._Rl: tuple[float, ...] | None = None        # its rotation (body to AHRS-NED), row by row
@@ -1484,6 +1486,9 @@ class NavEkf:
                     self._R_nb = np.array(self._Rl).reshape(3, 3)
                 v_air = max(tas / (1.0 + float(kf.x[_I_SCALE])), c.tas_min_m_s)
                 z_alpha = LiftAngleOfAttack.measured(c, self._nrm_f, v_air)
+                if abs(z_alpha) > self._alpha_max_rad:       # stall, or a pull beyond the linear lift curve
+                    self._st["aoa"].set(t, reason=REASON_AOA_RANGE)
+                    return
                 z_hat, h = LiftAngleOfAttack(self._R_nb, self._alpha_gain_m / (v_air * v_air)).row(kf.x)
                 self._fuse1(self._st["aoa"], t, z_hat, h, z_alpha,
                             LiftAngleOfAttack.variance(c, kf.turb_var, v_air), c.gate_aoa_nis)

@@ -381,6 +381,31 @@ def test_lift_angle_of_attack_measures_the_normal_specific_force():
         math.radians(on.aoa_sigma_deg) ** 2 + (on.aoa_turb_noise_factor * on.wind_d_sigma_ratio) ** 2 * 2.0 / 400.0)
 
 
+def test_lift_angle_of_attack_beyond_the_linear_lift_curve_is_not_fused():
+    """Steady level flight pitched up ``alpha`` at the airspeed whose lift at that angle carries the weight (the
+    accelerometer reads ``-g cos(alpha)`` along body z): at 8 deg the reading is fused (its innovation is about 0),
+    at 12 deg, beyond ``aoa_max_deg`` = 10 (a stall or a hard pull, where the lift curve is no longer linear), it is
+    not, and the status says why."""
+    cfg = dataclasses.replace(CFG0, aoa_fusion=True, aoa_max_deg=10.0)
+    g = 9.80665
+    for alpha_deg, fused in ((12.0, False), (8.0, True)):
+        a = math.radians(alpha_deg)
+        c_l = cfg.aoa_lift_coef_zero + cfg.aoa_lift_slope_per_rad * a
+        tas = math.sqrt(2.0 * cfg.airframe_mass_kg * g * math.cos(a)
+                        / (cfg.air_density_kg_m3 * cfg.airframe_wing_area_m2 * c_l))
+        f_b = np.array([g * math.sin(a), 0.0, -g * math.cos(a)])
+        ekf = NavEkf(cfg, t_us=0, pos_ned_m=[0.0, 0.0, -100.0], vel_ned_m_s=[tas, 0.0, 0.0], wind_ne_m_s=(0.0, 0.0))
+        for k in range(1, 201):
+            t = k * 5000
+            ekf.predict(ImuSample(t, np.zeros(3), f_b), AttitudeSample(t, 0.0, a, 0.0))
+        ekf.fuse_airspeed(1_000_000, tas)
+        st = ekf.status()["aoa"]
+        assert st.fused == fused, (alpha_deg, st)
+        assert (st.reason == ekf_mod.REASON_AOA_RANGE) == (not fused), st
+        if fused:
+            assert abs(st.innovation[0]) < math.radians(0.05), st
+
+
 def test_sideslip_noise_grows_with_the_turbulence_in_use():
     """The sideslip's variance is ``sigma_beta^2 + (factor * sigma_turb / V)^2``: two filters fed the same samples,
     one with the turbulence term, differ in the sideslip's innovation variance by exactly that term (the covariance
