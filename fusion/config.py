@@ -515,10 +515,7 @@ class EkfConfig:
         """``2 m / (rho S C_Lalpha)`` (m, positive): angle of attack (rad) = ``-(this * f_z / V^2) - alpha_0`` from
         the normal specific force ``f_z`` (FRD, about ``-g`` in level flight); 0 when ``aoa_lift_slope_per_rad`` is 0
         (no angle-of-attack measurement)."""
-        c = self.aoa_lift_slope_per_rad
-        if c == 0.0:
-            return 0.0
-        return 2.0 * self.airframe_mass_kg / (self.air_density_kg_m3 * self.airframe_wing_area_m2 * c)
+        return self._accel_gain_m(self.aoa_lift_slope_per_rad)
 
     @property
     def aoa_zero_lift_rad(self) -> float:
@@ -530,10 +527,14 @@ class EkfConfig:
     def sideslip_accel_gain_m(self) -> float:
         """``2 m / (rho S C_Ybeta)`` (m, negative): sideslip (rad) = this * lateral specific force / airspeed^2;
         0 when ``sideslip_side_force_coef_per_rad`` is 0 (zero-sideslip pseudo-measurement)."""
-        c = self.sideslip_side_force_coef_per_rad
-        if c == 0.0:
+        return self._accel_gain_m(self.sideslip_side_force_coef_per_rad)
+
+    def _accel_gain_m(self, coef_per_rad: float) -> float:
+        """``2 m / (rho S C)`` (m): the angle (rad) whose aerodynamic force coefficient slope is ``C`` per rad reads
+        this times the specific force over ``V^2`` (``q S C angle = m f``); 0 for ``C`` = 0 (model off)."""
+        if coef_per_rad == 0.0:
             return 0.0
-        return 2.0 * self.airframe_mass_kg / (self.air_density_kg_m3 * self.airframe_wing_area_m2 * c)
+        return 2.0 * self.airframe_mass_kg / (self.air_density_kg_m3 * self.airframe_wing_area_m2 * coef_per_rad)
 
     @property
     def optical_att_rel_sigma_rad(self) -> float:

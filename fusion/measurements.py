@@ -242,6 +242,37 @@ class TrueAirspeed:
 
 
 # --------------------------------------------------------------------------------------------------------------
+def _body_air_velocity(x: Vec, R_nb_ahrs: Mat) -> tuple[tuple[float, float, float], tuple[float, ...],
+                                                         tuple[float, float], tuple[float, float]]:
+    """What the sideslip and the angle of attack share: the body-frame air velocity ``vb = R_nb_ahrs^T [w,
+    v_air_d]`` (m/s, FRD) with ``w = R_z(yaw_bias) v_air`` (N, E; the AHRS attitude corrected by the heading error),
+    ``R_nb_ahrs`` row by row (its columns are the body axes in NED), ``w`` and ``(cos, sin)`` of ``yaw_bias``.
+
+    Scalar arithmetic: this runs with every airspeed sample, and nine multiplications are cheaper than four
+    3x3 NumPy products."""
+    xl = x.tolist()
+    an, ae, ad = xl[_VN] - xl[_WN], xl[_VE] - xl[_WE], xl[_VD] - xl[_WD]
+    c, s = math.cos(xl[_YB]), math.sin(xl[_YB])
+    wn, we = c * an - s * ae, s * an + c * ae                # R_z(yaw_bias) = R_z(-yaw_bias)^T
+    r = R_nb_ahrs.ravel().tolist()
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = r
+    vb = (r00 * wn + r10 * we + r20 * ad, r01 * wn + r11 * we + r21 * ad, r02 * wn + r12 * we + r22 * ad)
+    return vb, tuple(r), (wn, we), (c, s)
+
+
+def _air_angle_row(dw: tuple[float, float, float], w: tuple[float, float], cs: tuple[float, float]) -> Vec:
+    """Jacobian row (n,) of an angle of the body-frame air velocity, from its derivative ``dw`` w.r.t. ``[w,
+    v_air_d]`` (:func:`_body_air_velocity`): through ``R_z(yaw_bias)`` to the air velocity ``v - wind`` and to
+    ``yaw_bias``."""
+    c, s = cs
+    dn, de = c * dw[0] + s * dw[1], -s * dw[0] + c * dw[1]
+    h = np.zeros(S.dim)
+    h[_VN], h[_VE], h[_VD], h[_WN], h[_WE], h[_WD] = dn, de, dw[2], -dn, -de, -dw[2]
+    h[_YB] = dw[0] * -w[1] + dw[1] * w[0]                   # d w / d yaw_bias = (-w_E, w_N, 0)
+    return h
+
+
+# --------------------------------------------------------------------------------------------------------------
 @dataclass(frozen=True, slots=True)
 class SyntheticSideslip:
     """Sideslip pseudo-measurement (rad, small-angle ``v_air_b_y / v_air_b_x``).
@@ -265,23 +296,6 @@ class SyntheticSideslip:
     R_nb_ahrs: Mat
     accel_gain_rad_per_m_s2: float = 0.0
 
-    def _parts(self, x: Vec) -> tuple[float, float, tuple[float, float, float], tuple[float, float, float],
-                                      tuple[float, float], tuple[float, float]]:
-        """Body-frame air velocity ``(vb_x, vb_y)``, the body x and y axes in NED (columns 0 and 1 of ``R_nb_ahrs``),
-        ``w = R_z(yaw_bias) v_air`` (N, E), so that ``vb = R_nb_ahrs^T [w, v_air_d]``, and ``(cos, sin)`` of
-        ``yaw_bias``.
-
-        Scalar arithmetic: this runs with every airspeed sample, and nine multiplications are cheaper than four
-        3x3 NumPy products."""
-        xl = x.tolist()
-        an, ae, ad = xl[_VN] - xl[_WN], xl[_VE] - xl[_WE], xl[_VD] - xl[_WD]
-        c, s = math.cos(xl[_YB]), math.sin(xl[_YB])
-        wn, we = c * an - s * ae, s * an + c * ae            # R_z(yaw_bias) = R_z(-yaw_bias)^T
-        (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = self.R_nb_ahrs.tolist()
-        vbx = r00 * wn + r10 * we + r20 * ad                 # (R_nb^T w)_x: column 0 of R_nb
-        vby = r01 * wn + r11 * we + r21 * ad
-        return vbx, vby, (r00, r10, r20), (r01, r11, r21), (wn, we), (c, s)
-
     def predict(self, x: Vec) -> Vec:
         return np.array([self.row(x)[0]])
 
@@ -294,15 +308,11 @@ class SyntheticSideslip:
 
     def row(self, x: Vec) -> tuple[float, Vec]:
         """``(z_hat, h)``: the predicted sideslip measurement (rad) and the Jacobian row (n,)."""
-        vbx, vby, bx, by, (wn, we), (c, s) = self._parts(x)
+        (vbx, vby, _), (r00, r01, _, r10, r11, _, r20, r21, _), w, cs = _body_air_velocity(x, self.R_nb_ahrs)
         vx = max(vbx, MIN_AIR_SPEED_M_S)
         gx, gy = -vby / (vx * vx), 1.0 / vx                  # d(vb_y / vb_x) / d(vb_x, vb_y)
-        # d beta / d w (w = R_z(b) v_air): g_x * body_x + g_y * body_y, then through R_z(b) to v_air
-        dw = (gx * bx[0] + gy * by[0], gx * bx[1] + gy * by[1], gx * bx[2] + gy * by[2])
-        dn, de = c * dw[0] + s * dw[1], -s * dw[0] + c * dw[1]
-        h = np.zeros(S.dim)
-        h[_VN], h[_VE], h[_VD], h[_WN], h[_WE], h[_WD] = dn, de, dw[2], -dn, -de, -dw[2]
-        h[_YB] = dw[0] * -we + dw[1] * wn                   # d w / d yaw_bias = (-w_E, w_N, 0)
+        # d beta / d w: g_x * body_x + g_y * body_y (columns 0 and 1 of R_nb)
+        h = _air_angle_row((gx * r00 + gy * r01, gx * r10 + gy * r11, gx * r20 + gy * r21), w, cs)
         k = self.accel_gain_rad_per_m_s2
         if k:
             h[_BAY] = h[_SFO] = k
@@ -355,24 +365,16 @@ class LiftAngleOfAttack:
 
     def row(self, x: Vec) -> tuple[float, Vec]:
         """``(z_hat, h)``: the predicted angle-of-attack measurement (rad) and the Jacobian row (n,)."""
-        xl = x.tolist()
-        an, ae, ad = xl[_VN] - xl[_WN], xl[_VE] - xl[_WE], xl[_VD] - xl[_WD]
-        c, s = math.cos(xl[_YB]), math.sin(xl[_YB])
-        wn, we = c * an - s * ae, s * an + c * ae            # R_z(yaw_bias) v_air (N, E)
-        (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = self.R_nb_ahrs.tolist()
-        vbx = max(r00 * wn + r10 * we + r20 * ad, MIN_AIR_SPEED_M_S)     # column 0 of R_nb: body x in NED
-        vbz = r02 * wn + r12 * we + r22 * ad                 # column 2: body z
+        (vbx, _, vbz), (r00, _, r02, r10, _, r12, r20, _, r22), w, cs = _body_air_velocity(x, self.R_nb_ahrs)
+        vbx = max(vbx, MIN_AIR_SPEED_M_S)
         q = 1.0 / (vbx * vbx + vbz * vbz)
         gx, gz = -vbz * q, vbx * q                           # d atan(vb_z / vb_x) / d(vb_x, vb_z)
-        dw = (gx * r00 + gz * r02, gx * r10 + gz * r12, gx * r20 + gz * r22)
-        dn, de = c * dw[0] + s * dw[1], -s * dw[0] + c * dw[1]
-        h = np.zeros(S.dim)
-        h[_VN], h[_VE], h[_VD], h[_WN], h[_WE], h[_WD] = dn, de, dw[2], -dn, -de, -dw[2]
-        h[_YB] = dw[0] * -we + dw[1] * wn                   # d w / d yaw_bias = (-w_E, w_N, 0)
+        # d alpha / d w: g_x * body_x + g_z * body_z (columns 0 and 2 of R_nb)
+        h = _air_angle_row((gx * r00 + gz * r02, gx * r10 + gz * r12, gx * r20 + gz * r22), w, cs)
         k = self.accel_gain_rad_per_m_s2
         h[_BAZ] = -k
         h[_AOF] = 1.0
-        return math.atan2(vbz, vbx) - k * xl[_BAZ] + xl[_AOF], h
+        return math.atan2(vbz, vbx) - k * float(x[_BAZ]) + float(x[_AOF]), h
 
     @staticmethod
     def measured(cfg: EkfConfig, normal_force_m_s2: float, airspeed_m_s: float) -> float:
