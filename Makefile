@@ -20,8 +20,8 @@ test: $(STAMP)
 	$(VENV)/bin/python -m pytest -q
 
 lint: $(STAMP)
-	$(VENV)/bin/ruff check gsoe fusion nav sim tests
-	$(VENV)/bin/mypy gsoe fusion
+	$(VENV)/bin/ruff check common gsoe fusion pipeline nav sim tests
+	$(VENV)/bin/mypy common gsoe fusion pipeline
 
 bench: $(STAMP)
 	$(VENV)/bin/gsoe bench

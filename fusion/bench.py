@@ -11,9 +11,9 @@ from typing import Any
 
 import numpy as np
 
+from common.samples import AttitudeSample, GsoeStep, ImuSample, MatchQuality
 from fusion.config import EkfConfig
 from fusion.ekf import NavEkf
-from gsoe.types import AttitudeSample, GsoeStep, ImuSample, MatchQuality
 
 _NS_PER_US = 1_000.0
 

@@ -1,7 +1,7 @@
 """What the navigation EKF assumes: process noise, initial uncertainty, measurement noise, gates, timing, validity.
 
 Built from the ``[ekf]`` table of the configuration file with :func:`ekf_config_from_raw` (``raw`` is the mapping
-:func:`nav.configfile.load_gsoe_config` returns next to the optical config); every field is validated and a bad one
+:func:`pipeline.config.load_gsoe_config` returns next to the optical config); every field is validated and a bad one
 raises :class:`gsoe.config.ConfigError` naming ``ekf.<field>``.  The *true* sensor errors of a simulation live in
 the scenario (``sim``), not here (STYLE section 8).
 
@@ -19,7 +19,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from gsoe.config import ConfigError, build, in_range
+from common.config import ConfigError, build, in_range
 
 
 @dataclass(frozen=True)

@@ -8,7 +8,7 @@ Usage (every method documents its units; frames as in :mod:`gsoe`)::
     ekf.fuse_airspeed(t_us, tas_m_s)      # whenever a sample arrives, in any order within the fusion delay
     ekf.fuse_baro(t_us, alt_m)
     ekf.fuse_gnss(t_us, pos_ned_m, vel_ned_m_s)
-    ekf.fuse_optical(step)                # every gsoe.types.GsoeStep, including the new-cycle (base) steps
+    ekf.fuse_optical(step)                # every common.samples.GsoeStep, including the new-cycle (base) steps
     est = ekf.estimate()                  # NavEstimate with one-sigma uncertainties and a validity flag
     st = ekf.status()                     # per aid source: innovation, variance, test ratio, fused/rejected
 
@@ -115,6 +115,8 @@ from filterpy.kalman import ExtendedKalmanFilter
 from numpy.typing import ArrayLike, NDArray
 from scipy.constants import g as STANDARD_GRAVITY_M_S2
 
+from common.angles import angle_diff, wrap_2pi
+from common.samples import AttitudeSample, GsoeStep, ImuSample
 from fusion.config import EkfConfig
 from fusion.measurements import (
     BaroAltitude,
@@ -126,8 +128,6 @@ from fusion.measurements import (
     TrueAirspeed,
 )
 from fusion.state import S
-from gsoe.angles import angle_diff, wrap_2pi
-from gsoe.types import AttitudeSample, GsoeStep, ImuSample
 
 log = logging.getLogger(__name__)
 
@@ -982,7 +982,7 @@ class NavEkf:
                 self._push(t_us, src, (a, s_used))
 
     def fuse_optical(self, step: GsoeStep) -> None:
-        """Push one optical step (:class:`gsoe.types.GsoeStep`, fused at its exposure time ``step.t_us``); push every
+        """Push one optical step (a :class:`GsoeStep` fused at its exposure time ``step.t_us``); push every
         step in order, including each cycle's base step (``new_cycle``) so the clone is taken at the base time."""
         row = self._st["optical"]
         try:

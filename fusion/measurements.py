@@ -10,7 +10,7 @@ attitude, which axes a GNSS fix has) is given when the model is built, so a mode
 The tests check every ``jacobian`` against finite differences of ``predict``.
 
 Heading: the state's ``yaw_bias`` is ``yaw_ahrs - yaw_true``, so a heading reported by the AHRS (or a
-:class:`~gsoe.types.GsoeStep`'s ``base_yaw_rad``, which comes from it) is corrected as ``yaw_true = yaw - yaw_bias``.
+:class:`GsoeStep`'s ``base_yaw_rad``, which comes from it) is corrected as ``yaw_true = yaw - yaw_bias``.
 """
 
 from __future__ import annotations
@@ -22,9 +22,9 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from common.samples import GsoeStep
 from fusion.config import EkfConfig
 from fusion.state import S
-from gsoe.types import GsoeStep
 
 Vec = NDArray[np.float64]
 Mat = NDArray[np.float64]

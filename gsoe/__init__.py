@@ -33,7 +33,7 @@ Names
     ``airspeed_m_s``, ``height_agl_m``, ``yaw_rad``, ``wind_ned_m_s``.
 Angles
     Headings, courses and wind directions are clockwise from north; wind direction is the direction the wind
-    blows *from* (as MAVLink WIND).  Angles that wrap are compared only through :mod:`gsoe.angles`.
+    blows *from* (as MAVLink WIND).  Angles that wrap are compared only through :mod:`common.angles`.
 """
 
 __all__ = ["__version__"]

@@ -36,9 +36,9 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
+from common.samples import AttitudeSample, ImuSample
 from gsoe import quat
 from gsoe.quat import Quat
-from gsoe.types import AttitudeSample, ImuSample
 
 US_PER_S = 1_000_000
 # A frame may be stamped slightly after the newest attitude sample; beyond this the attitude is unknown.

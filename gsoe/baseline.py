@@ -12,13 +12,13 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from gsoe.angles import circular_mean
+from common.angles import circular_mean
+from common.samples import GsoeStep
 from gsoe.attitude import US_PER_S
 from gsoe.config import IntegrityConfig
 from gsoe.cycle import chord_drift_rad
 from gsoe.equations import ata_rad, wind_triangle
 from gsoe.integrity import IntegrityFilter
-from gsoe.types import GsoeStep
 
 
 @dataclass(frozen=True, slots=True)

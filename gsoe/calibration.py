@@ -33,8 +33,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from common.config import ConfigError
 from gsoe.camera import CameraModel
-from gsoe.config import CameraConfig, ConfigError
+from gsoe.config import CameraConfig
 
 #: Fewest boards :func:`calibrate` accepts (OpenCV recommends 10 or more well spread views; fewer than this
 #: leaves the eight fisheye parameters poorly constrained).

@@ -1,7 +1,7 @@
 """The template-matching cycle (paper 2.4-2.6): base snapshot, template migration, new cycle conditions.
 
 :class:`GsoeEstimator` takes timestamped attitude and gyro samples (:meth:`push_attitude`, :meth:`push_imu`) and
-camera frames stamped at their exposure time (:meth:`process_frame`), and returns :class:`gsoe.types.GsoeStep`
+camera frames stamped at their exposure time (:meth:`process_frame`), and returns :class:`common.samples.GsoeStep`
 records: the template's accumulated migration since the base snapshot, in the cycle's stabilised frame.
 
 The attitude of a frame is the AHRS attitude with its latency removed (:meth:`AttitudeBuffer.compensated_at`:
@@ -27,8 +27,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from common.angles import circular_mean, wrap_pi
+from common.samples import AttitudeSample, GsoeStep, ImuSample, MatchQuality
 from gsoe import quat
-from gsoe.angles import circular_mean, wrap_pi
 from gsoe.attitude import US_PER_S, AttitudeBuffer
 from gsoe.camera import CameraModel
 from gsoe.config import GsoeConfig
@@ -36,7 +37,6 @@ from gsoe.integrity import data_filter_fires
 from gsoe.matching import match_template, texture_std
 from gsoe.quat import Quat
 from gsoe.stabilise import Frame, VirtualNadirCamera
-from gsoe.types import AttitudeSample, GsoeStep, ImuSample, MatchQuality
 
 _NO_QUALITY = MatchQuality(psr=0.0, texture_std=0.0, ssd_per_px=math.nan, valid=False)
 

@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from gsoe.angles import angle_diff, wrap_2pi, wrap_pi
+from common.angles import angle_diff, wrap_2pi, wrap_pi
 
 FloatOrArray = float | NDArray[np.float64]
 

@@ -1,7 +1,7 @@
 """The paper's data filter (eq. 6, section 2.5) and heuristic data-integrity filter (section 2.7).
 
 Both are kept as the baseline that the EKF of :mod:`fusion` replaces and is compared against.  Angles in radians
-inside, compared only through :mod:`gsoe.angles`.
+inside, compared only through :mod:`common.angles`.
 
 Data filter (eq. 6)
     ``|a_x - b_x| >= zeta  and  |a_y - b_y| >= zeta``: both components of two consecutive quantities differ by at
@@ -40,7 +40,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gsoe.angles import angle_diff, circular_mean, wrap_pi
+from common.angles import angle_diff, circular_mean, wrap_pi
 from gsoe.config import IntegrityConfig
 
 # Consecutive jump-rejected cycles that must agree among themselves before their drift is accepted as the new

@@ -28,7 +28,7 @@ Sub-pixel refinement (``cfg.subpixel``)
     is well conditioned and the estimate stays within ``_MAX_SUBPIXEL_OFFSET_PX`` of the discrete minimum;
     otherwise the estimate of (1) stands.
 
-Quality (:class:`gsoe.types.MatchQuality`)
+Quality (:class:`common.samples.MatchQuality`)
     ``psr``: peak-to-sidelobe ratio of the SSD surface taken in the log domain,
     ``(mean_side(L) - L_min) / std_side(L)`` with ``L = ln(max(SSD, n_px * SSD_FLOOR_PER_PX))``, where the sidelobe
     is the surface outside a ``(2 e + 1)^2`` window around the minimum (``e = cfg.sidelobe_exclude_px``).  Why log:
@@ -72,8 +72,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from common.samples import MatchQuality
 from gsoe.config import MatchConfig
-from gsoe.types import MatchQuality
 
 log = logging.getLogger(__name__)
 

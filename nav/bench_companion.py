@@ -161,10 +161,10 @@ def guidance_figure(out_dir: Path, start_m: float = 2300.0, outage_range_m: floa
 
 def perf(seconds: float, frame_hz: float, outage_after_s: float, config: str | None) -> dict[str, Any]:
     """Run the companion in this process on one core against the vehicle on another; the figures."""
+    from common.logio import read_log
     from nav.cmd_companion import _setting, apply_settings
     from nav.companion import Companion
-    from nav.configfile import load_gsoe_config
-    from nav.logio import read_log
+    from pipeline.config import load_gsoe_config
 
     cores = sorted(os.sched_getaffinity(0))
     veh_core, comp_core = (cores[0], cores[1]) if len(cores) > 1 else (cores[0], cores[0])

@@ -10,7 +10,7 @@ import importlib.util
 import logging
 import sys
 
-from gsoe.config import ConfigError
+from common.config import ConfigError
 
 # subcommand -> (module, one-line help)
 SUBCOMMANDS: dict[str, tuple[str, str]] = {

@@ -20,12 +20,12 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from common.samples import AttitudeSample, ImuSample
 from gsoe.camera import CameraModel
 from gsoe.config import GsoeConfig
 from gsoe.cycle import GsoeEstimator
 from gsoe.equations import nadir_pixel_paper
-from gsoe.types import AttitudeSample, ImuSample
-from nav.configfile import load_gsoe_config
+from pipeline.config import load_gsoe_config
 from sim.render import CameraRenderer
 from sim.textures import GroundWorld
 from sim.trajectory import ScriptedFlight, Segment
@@ -132,7 +132,7 @@ def _geometry_comparison(cfg: GsoeConfig, camera: CameraModel, texture: str) -> 
     template starting at the trailing edge, over the same noisy scripted flight (AHRS 0.1 deg, gyro 0.02 deg/s)."""
     import dataclasses
 
-    from gsoe.angles import angle_diff, circular_mean
+    from common.angles import angle_diff, circular_mean
     from gsoe.cycle import chord_drift_rad
     from sim.optical_run import fly_optical
 

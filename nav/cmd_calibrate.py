@@ -3,7 +3,7 @@
 Reads chessboard images, finds the boards (:func:`gsoe.calibration.find_board`), calibrates
 (:func:`gsoe.calibration.calibrate`), prints the RMS and per-image reprojection errors (and those of the last
 ``N`` boards, held out of the calibration), and writes a camera file in the format of
-``config/camera/*.toml`` (loadable by :func:`nav.configfile.load_camera`).  Exit status: 0 written, 1 too few
+``config/camera/*.toml`` (loadable by :func:`pipeline.config.load_camera`).  Exit status: 0 written, 1 too few
 boards or the calibration failed, 2 bad input (missing or unreadable image, mixed image sizes).
 """
 

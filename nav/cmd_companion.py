@@ -74,7 +74,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from nav.companion import Companion
-    from nav.configfile import load_gsoe_config
+    from pipeline.config import load_gsoe_config
 
     gsoe_cfg, raw = load_gsoe_config(args.config)
     raw = apply_settings(raw, args.settings)

@@ -45,7 +45,7 @@ def _fail(message: str) -> int:
 def run(args: argparse.Namespace) -> int:
     from gsoe.camera import CameraModel
     from gsoe.rotation import R_nb_from_euler
-    from nav.configfile import load_gsoe_config
+    from pipeline.config import load_gsoe_config
     from sim.render import CameraRenderer
     from sim.textures import TEXTURE_NAMES, GroundWorld
 

@@ -18,7 +18,7 @@ One synchronous loop (the link's asyncio runs in its own thread, the camera read
    live state);
 5. track the designated target (the belly camera's template tracker, or an external tracker over MAVLink,
    ``[companion.tracking]``) and send the heading command (:mod:`nav.guidance`);
-6. log every input, estimate and output through :class:`nav.logio.RunLog` (append-only, flushed at least every
+6. log every input, estimate and output through :class:`common.logio.RunLog` (append-only, flushed at least every
    ``log_flush_s`` <= 1 s, so ``kill -9`` loses at most that), and every state change (camera lost/opened, link
    lost/restored, estimate valid/invalid with its reason, telemetry rejected, GNSS state) to ``events.csv``.
 
@@ -46,9 +46,11 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from common.config import ConfigError, build, in_range
+from common.logio import RunLog
+from common.samples import AttitudeSample, GsoeStep, ImuSample
 from gsoe.camera import CameraModel
-from gsoe.config import ConfigError, GsoeConfig, build, in_range
-from gsoe.types import AttitudeSample, GsoeStep, ImuSample
+from gsoe.config import GsoeConfig
 from nav.gnss_monitor import Consistency, GnssMonitor, GnssMonitorConfig, GnssState
 from nav.guidance import GuidanceConfig, TargetGuidance, change_heading_command_fields, forward_camera
 from nav.link import (
@@ -62,7 +64,6 @@ from nav.link import (
     TrackReading,
     now_us,
 )
-from nav.logio import RunLog
 from nav.tracker import ExternalTracker, TemplateTracker, TemplateTrackerConfig
 
 log = logging.getLogger(__name__)

@@ -31,7 +31,7 @@ import math
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
-from gsoe.angles import wrap_360
+from common.angles import wrap_360
 
 MAV_COMP_ID_ONBOARD_COMPUTER = 191
 GNSS_STATE_NAMES = {0: "GNSS_OK", 1: "GNSS_DEGRADED", 2: "GNSS_DENIED"}

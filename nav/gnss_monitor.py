@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from gsoe.config import in_range, require
+from common.config import in_range, require
 
 log = logging.getLogger(__name__)
 

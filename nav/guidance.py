@@ -39,9 +39,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from gsoe.angles import angle_diff, wrap_2pi
+from common.angles import angle_diff, wrap_2pi
+from common.config import in_range
 from gsoe.camera import CameraModel
-from gsoe.config import in_range
 from gsoe.rotation import R_nb_from_euler
 
 # MAVLink constants (common.xml / ardupilotmega.xml); named here so nav/ code reads without magic numbers.

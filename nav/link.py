@@ -6,8 +6,8 @@ before it becomes a timestamped sample; rejected samples are counted per kind an
 ==================  ==============================================  =======================================
 sample              source                                          becomes
 ==================  ==============================================  =======================================
-attitude            ``telemetry.subscribe_attitude_euler``           :class:`gsoe.types.AttitudeSample`
-IMU                 ``telemetry.subscribe_scaled_imu`` (SCALED_IMU)  :class:`gsoe.types.ImuSample`
+attitude            ``telemetry.subscribe_attitude_euler``           :class:`common.samples.AttitudeSample`
+IMU                 ``telemetry.subscribe_scaled_imu`` (SCALED_IMU)  :class:`common.samples.ImuSample`
 airspeed            ``telemetry.subscribe_fixedwing_metrics``        :class:`AirspeedReading` (VFR_HUD TAS)
 baro                ``telemetry.subscribe_scaled_pressure``          :class:`BaroReading` (ISA pressure altitude)
 GNSS                ``MavlinkDirect`` GPS_RAW_INT (one message with  :class:`nav.gnss_monitor.GnssReport`
@@ -63,9 +63,9 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from gsoe.angles import wrap_360
-from gsoe.config import in_range
-from gsoe.types import AttitudeSample, ImuSample
+from common.angles import wrap_360
+from common.config import in_range
+from common.samples import AttitudeSample, ImuSample
 from nav.gnss_monitor import GnssReport
 
 log = logging.getLogger(__name__)

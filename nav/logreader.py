@@ -10,8 +10,8 @@ Formats
 
 Samples (frames and units as in :mod:`gsoe`; every sample has ``t_us``, integer microseconds since the log's
 first sample on one common clock)
-    :class:`gsoe.types.ImuSample`       body rates (rad/s) and specific force (m/s^2), FRD.
-    :class:`gsoe.types.AttitudeSample`  autopilot AHRS roll, pitch, yaw (rad; yaw in [-pi, pi), from north).
+    :class:`common.samples.ImuSample`       body rates (rad/s) and specific force (m/s^2), FRD.
+    :class:`common.samples.AttitudeSample`  autopilot AHRS roll, pitch, yaw (rad; yaw in [-pi, pi), from north).
     :class:`AirspeedSample`             true airspeed (m/s) and the equivalent airspeed it came from.
     :class:`BaroSample`                 ISA pressure altitude (m, up) from the static pressure (Pa).
     :class:`GnssSample`                 position in local NED (m) from the first 3-D fix, ground velocity NED.
@@ -70,8 +70,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from gsoe.angles import wrap_2pi, wrap_pi
-from gsoe.types import AirspeedSample, AttitudeSample, BaroSample, GnssSample, ImuSample
+from common.angles import wrap_2pi, wrap_pi
+from common.samples import AirspeedSample, AttitudeSample, BaroSample, GnssSample, ImuSample
 
 log = logging.getLogger(__name__)
 
@@ -103,7 +103,7 @@ SUFFIXES = {".tlog": "tlog", ".bin": "dataflash", ".ulg": "ulog"}
 
 
 # --------------------------------------------------------------------------------------------------------------
-# Samples (AirspeedSample, BaroSample, GnssSample, ImuSample, AttitudeSample are gsoe.types')
+# Samples (AirspeedSample, BaroSample, GnssSample, ImuSample, AttitudeSample are common.samples')
 
 
 @dataclass(frozen=True, slots=True)

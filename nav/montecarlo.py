@@ -76,8 +76,10 @@ from typing import Any, Literal
 import numpy as np
 from scipy import stats as sps
 
-from gsoe.config import CameraConfig, ConfigError, build, in_range, require, to_dict
-from nav.configfile import CONFIG_DIR, load_gsoe_config, read_toml
+from common.config import ConfigError, build, in_range, require, to_dict
+from common.configfile import CONFIG_DIR, read_toml
+from gsoe.config import CameraConfig
+from pipeline.config import load_gsoe_config
 from sim.metrics import nees_bounds
 from sim.scenario import SEED_MAX, Scenario, build_scenario, load_scenario, scenario_path, scenario_with_overrides
 

@@ -72,7 +72,7 @@ Wind against the autopilot
     estimate is another filter's answer, not truth.
 
 Outputs (``out_dir``)
-    ``metrics.json``, ``ekf.csv``/``aid_status.csv`` (:mod:`nav.logio`, one record per IMU sample), ``gsoe.csv`` (the
+    ``metrics.json``, ``ekf.csv``/``aid_status.csv`` (:mod:`common.logio`, one record per IMU sample), ``gsoe.csv`` (the
     synthetic optical steps), ``gnss.csv``, ``autopilot_wind.csv``, ``wind.png``, ``track.png``,
     ``position_error.png`` and ``report.html``.
 
@@ -98,16 +98,17 @@ from numpy.typing import NDArray
 from scipy.integrate import cumulative_trapezoid
 from scipy.spatial.transform import Rotation, Slerp
 
+from common.angles import angle_diff
+from common.config import ConfigError, build, in_range, require
+from common.logio import RunLog
+from common.samples import AttitudeSample, GsoeStep, ImuSample, MatchQuality
 from fusion.config import EkfConfig, ekf_config_from_raw
 from fusion.ekf import NavEkf, NavEstimate
 from fusion.measurements import OpticalDisplacement
-from gsoe.angles import angle_diff
-from gsoe.config import ConfigError, GsoeConfig, build, in_range, require
+from gsoe.config import GsoeConfig
 from gsoe.cycle import base_reference_px
-from gsoe.types import AttitudeSample, GsoeStep, ImuSample, MatchQuality
-from nav.configfile import load_gsoe_config
-from nav.logio import RunLog
 from nav.logreader import AirspeedSample, AutopilotWind, BaroSample, FlightLog, GnssSample, read_log
+from pipeline.config import load_gsoe_config
 from sim import metrics as M
 
 log = logging.getLogger(__name__)
@@ -116,7 +117,7 @@ US_PER_S = 1_000_000
 OPTICAL_SOURCE_SYNTHETIC = "synthetic_from_gnss_velocity"
 OPTICAL_SOURCE_NONE = "none"
 PLOT_DPI = 90
-#: CSV streams (:mod:`nav.logio`) a replay writes into its output folder.
+#: CSV streams (:mod:`common.logio`) a replay writes into its output folder.
 CSV_STREAMS = ("ekf", "aid_status", "gsoe", "gnss", "autopilot_wind")
 
 #: EKF settings a replay puts on top of ``[ekf]`` (see the module docstring, "EKF profile").

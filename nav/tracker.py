@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from gsoe.config import in_range, require
+from common.config import in_range, require
 
 
 @dataclass(frozen=True, slots=True)

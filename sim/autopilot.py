@@ -51,8 +51,8 @@ from typing import Final, Literal
 
 import numpy as np
 
-from gsoe.angles import wrap_pi
-from gsoe.config import in_range, require
+from common.angles import wrap_pi
+from common.config import in_range, require
 from sim.dynamics import STANDARD_G_M_S2, ControlCommand
 from sim.truth import TruthState
 

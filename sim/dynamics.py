@@ -50,8 +50,8 @@ from typing import Final
 import numpy as np
 from scipy.optimize import root
 
-from gsoe.angles import wrap_pi
-from gsoe.config import in_range, require
+from common.angles import wrap_pi
+from common.config import in_range, require
 from sim.truth import TruthState
 from sim.wind import WindField, WindParams
 

@@ -91,8 +91,8 @@ from typing import Any, Literal, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from gsoe.angles import angle_diff, wrap_2pi, wrap_360, wrap_pi
-from gsoe.types import AirspeedSample, AttitudeSample, BaroSample, GnssSample, ImuSample
+from common.angles import angle_diff, wrap_2pi, wrap_360, wrap_pi
+from common.samples import AirspeedSample, AttitudeSample, BaroSample, GnssSample, ImuSample
 from sim.sensors import CameraFrame, SensorReadings
 from sim.truth import TruthState
 
@@ -500,7 +500,7 @@ class BellyCamera:
     def __init__(self, texture: str, seed: int, noise_std: float, exposure_s: float, rng: np.random.Generator,
                  config_path: str | None = None) -> None:
         from gsoe.camera import CameraModel
-        from nav.configfile import load_gsoe_config
+        from pipeline.config import load_gsoe_config
         from sim.render import CameraRenderer
         from sim.textures import GroundWorld
 
@@ -657,8 +657,8 @@ class MavlinkVehicle:
         self.tracking_camera: Any = None
         if cfg.target_ned_m is not None:
             from gsoe.camera import CameraModel
-            from nav.configfile import load_gsoe_config
             from nav.guidance import forward_camera
+            from pipeline.config import load_gsoe_config
 
             cam = CameraModel.from_config(load_gsoe_config(cfg.config_path)[0].camera)
             self.tracking_camera = forward_camera(cam, math.radians(cfg.tracking_depression_deg))

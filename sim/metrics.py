@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.stats import chi2
 
-from gsoe.angles import angle_diff, wrap_2pi
+from common.angles import angle_diff, wrap_2pi
 
 HEADING_BIN_DEG = 1.0
 

@@ -12,10 +12,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from common.samples import AttitudeSample, GsoeStep, ImuSample
 from gsoe.camera import CameraModel
 from gsoe.config import GsoeConfig
 from gsoe.cycle import GsoeEstimator
-from gsoe.types import AttitudeSample, GsoeStep, ImuSample
 from sim.render import CameraRenderer
 from sim.trajectory import ScriptedFlight
 from sim.truth import TruthState

@@ -12,7 +12,7 @@ baseline chain and the EKF, all on the simulation clock, with every figure measu
    to the baseline (paper 2.4-2.7) and to the EKF.
 
 Truth, sensor samples and estimates are kept in memory for the metrics and, with ``out_dir``, written as the CSV
-streams of :mod:`nav.logio` (the truth and estimator outputs once per camera frame, sensors at their own rates).
+streams of :mod:`common.logio` (the truth and estimator outputs once per camera frame, sensors at their own rates).
 Ctrl-C stops the flight cleanly: the logs written so far stay readable and the metrics say ``interrupted``.
 """
 
@@ -29,16 +29,16 @@ from typing import Any
 import cv2
 import numpy as np
 
+from common.angles import angle_diff
+from common.logio import RunLog
+from common.samples import AttitudeSample, GsoeStep
 from fusion.config import ekf_config_from_raw
 from fusion.ekf import NavEkf, NavEstimate
-from gsoe.angles import angle_diff
 from gsoe.baseline import PaperBaseline
 from gsoe.camera import CameraModel
 from gsoe.cycle import GsoeEstimator
 from gsoe.rotation import R_nb_from_euler
-from gsoe.types import AttitudeSample, GsoeStep
-from nav.configfile import load_gsoe_config
-from nav.logio import RunLog
+from pipeline.config import load_gsoe_config
 from sim import metrics as M
 from sim.autopilot import Autopilot, Waypoint
 from sim.dynamics import DynamicsParams, FlightDynamics

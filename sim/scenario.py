@@ -37,20 +37,9 @@ from typing import Any, Literal, get_args
 import numpy as np
 from numpy.typing import NDArray
 
-from gsoe.config import (
-    CameraConfig,
-    ConfigError,
-    CycleConfig,
-    GsoeConfig,
-    IntegrityConfig,
-    MatchConfig,
-    StabConfig,
-    build,
-    in_range,
-    require,
-    to_dict,
-)
-from nav.configfile import CONFIG_DIR, read_toml
+from common.config import ConfigError, build, in_range, require, to_dict
+from common.configfile import CONFIG_DIR, read_toml
+from gsoe.config import CameraConfig, CycleConfig, GsoeConfig, IntegrityConfig, MatchConfig, StabConfig
 
 SCENARIO_DIR = CONFIG_DIR / "scenarios"
 

@@ -27,8 +27,8 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from gsoe.angles import angle_diff, wrap_pi
-from gsoe.types import AirspeedSample, AttitudeSample, BaroSample, GnssSample, ImuSample
+from common.angles import angle_diff, wrap_pi
+from common.samples import AirspeedSample, AttitudeSample, BaroSample, GnssSample, ImuSample
 from sim.scenario import (
     AhrsConfig,
     AirspeedConfig,
@@ -146,7 +146,7 @@ def draw_sensor_errors(cfg: SensorsConfig, rng: np.random.Generator, camera: Cam
 
 
 # --------------------------------------------------------------------------------------------------------------
-# Camera exposure (AirspeedSample, BaroSample, GnssSample live in gsoe.types)
+# Camera exposure (AirspeedSample, BaroSample, GnssSample live in common.samples)
 
 
 @dataclass(frozen=True, slots=True)

@@ -57,7 +57,7 @@ from typing import Final
 import numpy as np
 from numpy.typing import NDArray
 
-from gsoe.config import in_range, require
+from common.config import in_range, require
 
 FT_M: Final = 0.3048
 TURB_HEIGHT_MIN_M: Final = 10.0 * FT_M

@@ -12,7 +12,7 @@ SHARED_DATA = ROOT.parent / "shared" / "data"
 
 @pytest.fixture(scope="session")
 def gsoe_config():
-    from nav.configfile import load_gsoe_config
+    from pipeline.config import load_gsoe_config
 
     return load_gsoe_config()[0]
 

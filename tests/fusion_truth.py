@@ -27,12 +27,12 @@ from numpy.typing import NDArray
 from scipy.constants import g as G
 from scipy.spatial.transform import Rotation
 
+from common.angles import angle_diff
+from common.samples import AttitudeSample, GsoeStep, ImuSample, MatchQuality
 from fusion.config import EkfConfig
 from fusion.consistency import nees
 from fusion.ekf import NavEkf
 from fusion.measurements import OpticalDisplacement
-from gsoe.angles import angle_diff
-from gsoe.types import AttitudeSample, GsoeStep, ImuSample, MatchQuality
 
 Arr = NDArray[np.float64]
 

@@ -7,7 +7,7 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from gsoe.types import AttitudeSample, ImuSample
+from common.samples import AttitudeSample, ImuSample
 
 IMU_RATE_HZ = 300
 FRAME_RATE_HZ = 30.0

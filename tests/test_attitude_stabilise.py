@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from common.samples import AttitudeSample, ImuSample
 from gsoe import quat
 from gsoe.attitude import AttitudeBuffer
 from gsoe.rotation import R_nb_from_euler
 from gsoe.stabilise import PatchSampler, VirtualNadirCamera, _interp_matrix
-from gsoe.types import AttitudeSample, ImuSample
 
 RATE_HZ = 300
 T_END_S = 4.0

@@ -21,7 +21,7 @@ from gsoe.calibration import (
 from gsoe.camera import CameraModel
 from gsoe.config import CameraConfig
 from nav.cli import main
-from nav.configfile import load_camera
+from pipeline.config import load_camera
 
 CALIB_DIR = Path(__file__).resolve().parent / "data" / "fisheye_calib"
 IMAGES = sorted(CALIB_DIR.glob("*.png"))

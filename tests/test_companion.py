@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from common.logio import read_log
 from nav.companion import check_frame
-from nav.logio import read_log
 
 ROOT = Path(__file__).resolve().parent.parent
 PY = sys.executable
@@ -133,7 +133,6 @@ def test_fuzz_10k_frames_and_telemetry_samples_never_crash_nor_send_invalid_valu
     that passes the link's gate encodes to finite in-range MAVLink values (checked by the vehicle's own validator),
     and after the fuzz the estimate is valid again."""
     from nav.companion import Estimator, companion_config_from_raw
-    from nav.configfile import load_gsoe_config
     from nav.gnss_monitor import GnssMonitor, GnssState
     from nav.guidance import TargetGuidance, change_heading_command_fields, forward_camera
     from nav.link import (
@@ -148,6 +147,7 @@ def test_fuzz_10k_frames_and_telemetry_samples_never_crash_nor_send_invalid_valu
         status_values,
     )
     from nav.tracker import ExternalTracker
+    from pipeline.config import load_gsoe_config
     from sim.mavlink_vehicle import BellyCamera, KinematicPlant, VehicleConfig, isa_pressure_hpa, received_problems
 
     rng = np.random.default_rng(2024)
@@ -309,7 +309,7 @@ def test_optical_quality_falls_to_zero_over_featureless_ground(gsoe_config, came
     """Over textured ground the matches are valid; over flat ground no cycle runs, and the quality the ground
     station sees falls to 0 instead of keeping the last textured value."""
     from nav.companion import Estimator, companion_config_from_raw
-    from nav.configfile import load_gsoe_config
+    from pipeline.config import load_gsoe_config
     from tests.still_camera import still_frames
 
     raw = load_gsoe_config()[1]

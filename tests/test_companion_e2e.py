@@ -18,8 +18,8 @@ import math
 import numpy as np
 import pytest
 
+from common.logio import read_log
 from nav.bench_companion import TRACKING_SETTINGS, guidance_figure, guidance_vehicle_args, sil_flight
-from nav.logio import read_log
 
 OUTPUT_KINDS = ("NAMED_VALUE_FLOAT", "VISION_SPEED_ESTIMATE", "WIND_COV", "WIND", "STATUSTEXT")
 WIND_TRUE = (8.0, 270.0)  # 8 m/s from the west (the vehicle's --wind-ned-m-s 0,8)

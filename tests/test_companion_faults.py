@@ -15,8 +15,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from common.logio import read_log
 from nav.bench_companion import sil_flight
-from nav.logio import read_log
 
 RECOVERY_S = 2.0
 GNSS_OUTAGE_S = (15.0, 1000.0)

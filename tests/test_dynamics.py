@@ -13,8 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from gsoe.angles import angle_diff
-from gsoe.config import ConfigError
+from common.angles import angle_diff
+from common.config import ConfigError
 from sim.autopilot import Autopilot, AutopilotGains, Waypoint
 from sim.dynamics import ControlCommand, DynamicsError, DynamicsParams, FlightDynamics
 from sim.truth import TruthState

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from gsoe.angles import angle_diff
+from common.angles import angle_diff
 from gsoe.camera import CameraModel
 from gsoe.config import CameraConfig
 from gsoe.equations import (

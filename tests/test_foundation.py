@@ -7,9 +7,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from gsoe.angles import angle_diff, angle_diff_deg, circular_mean, wrap_2pi, wrap_pi
+from common.angles import angle_diff, angle_diff_deg, circular_mean, wrap_2pi, wrap_pi
+from common.config import ConfigError, build
 from gsoe.camera import CameraModel
-from gsoe.config import CameraConfig, ConfigError, StabConfig, build
+from gsoe.config import CameraConfig, StabConfig
 from gsoe.rotation import R_BC_NOMINAL, R_nb_from_euler
 
 
@@ -87,7 +88,7 @@ def test_config_errors_name_the_field(camera):
 
 
 def test_config_file_errors(tmp_path):
-    from nav.configfile import load_gsoe_config
+    from pipeline.config import load_gsoe_config
 
     with pytest.raises(ConfigError, match="file not found"):
         load_gsoe_config(tmp_path / "missing.toml")

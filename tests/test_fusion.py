@@ -9,6 +9,8 @@ import numpy as np
 import pytest
 from scipy.optimize import approx_fprime
 
+from common.config import ConfigError
+from common.samples import AttitudeSample, GsoeStep, ImuSample, MatchQuality
 from fusion import ekf as ekf_mod
 from fusion.bench import bench_ekf_step
 from fusion.config import EkfConfig, ekf_config_from_raw
@@ -23,10 +25,8 @@ from fusion.measurements import (
     TrueAirspeed,
 )
 from fusion.state import S, StateLayout
-from gsoe.config import ConfigError
 from gsoe.rotation import R_nb_from_euler
-from gsoe.types import AttitudeSample, GsoeStep, ImuSample, MatchQuality
-from nav.configfile import load_gsoe_config
+from pipeline.config import load_gsoe_config
 from tests.fusion_truth import TruthConfig, filter_config, make_flight, run_ekf
 
 CFG0 = filter_config()          # the defaults, with the test truth's optical error model and no fusion delay

@@ -14,10 +14,10 @@ import math
 import numpy as np
 import pytest
 
+from common.angles import angle_diff
 from fusion import ekf as ekf_mod
 from fusion.consistency import chi2_interval, fraction_in_interval
 from fusion.state import S
-from gsoe.angles import angle_diff
 from tests.fusion_truth import TruthConfig, filter_config, make_flight, naive_velocity_ne, run_ekf
 
 CFG0 = filter_config()          # the defaults, with this truth's optical error model and no fusion delay

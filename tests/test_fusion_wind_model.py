@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 from scipy.constants import g as G
 
+from common.config import ConfigError
+from common.samples import AttitudeSample, ImuSample
 from fusion.config import EkfConfig, ekf_config_from_raw
 from fusion.ekf import NavEkf
 from fusion.state import S
-from gsoe.config import ConfigError
-from gsoe.types import AttitudeSample, ImuSample
 from tests.fusion_truth import TruthConfig, filter_config, make_flight, run_ekf
 
 IMU_DT_US = 10_000          # 100 Hz

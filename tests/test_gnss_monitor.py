@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gsoe.config import ConfigError, build
+from common.config import ConfigError, build
 from nav.gnss_monitor import (
     STATUSTEXT_MAX_CHARS,
     Consistency,

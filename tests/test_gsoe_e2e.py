@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from gsoe.angles import angle_diff, circular_mean
+from common.angles import angle_diff, circular_mean
+from common.samples import AttitudeSample, ImuSample
 from gsoe.cycle import GsoeEstimator, chord_drift_rad
-from gsoe.types import AttitudeSample, ImuSample
 from sim.optical_run import OpticalRun, fly_optical
 from sim.render import CameraRenderer
 from sim.textures import GroundWorld

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from gsoe.angles import angle_diff
+from common.angles import angle_diff
 from gsoe.config import IntegrityConfig
 from gsoe.integrity import RECOVERY_CYCLES, IntegrityFilter, circular_median, data_filter_fires
 

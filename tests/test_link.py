@@ -11,7 +11,7 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from gsoe.types import AttitudeSample, ImuSample
+from common.samples import AttitudeSample, ImuSample
 from nav.guidance import GuidanceConfig, HeadingCommand, change_heading_command_fields
 from nav.link import (
     AirspeedReading,

@@ -1,4 +1,4 @@
-"""The CSV log format of nav.logio: round trip of every value type, and a torn last line."""
+"""The CSV log format of common.logio: round trip of every value type, and a torn last line."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from nav.logio import RunLog, read_log
+from common.logio import RunLog, read_log
 
 
 def test_round_trip_of_every_value_type(tmp_path: Path) -> None:

@@ -12,8 +12,8 @@ import pytest
 from pymavlink import mavutil
 from scipy.spatial.transform import Rotation
 
-from gsoe.angles import angle_diff
-from gsoe.types import AttitudeSample, ImuSample
+from common.angles import angle_diff
+from common.samples import AttitudeSample, ImuSample
 from nav.logreader import (
     AirspeedSample,
     AutopilotWind,

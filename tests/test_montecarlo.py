@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 from scipy import stats as sps
 
-from gsoe.config import ConfigError
+from common.config import ConfigError
 from nav.montecarlo import (
     DEFAULT_GOALS,
     RunRecord,

@@ -20,11 +20,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from common.logio import read_log as read_csv_stream
 from fusion.measurements import OpticalDisplacement
 from fusion.state import S
 from nav.cli import main
-from nav.configfile import load_gsoe_config
-from nav.logio import read_log as read_csv_stream
 from nav.logreader import AirspeedSample, GnssSample
 from nav.replay import (
     OPTICAL_SOURCE_NONE,
@@ -35,6 +34,7 @@ from nav.replay import (
     run_replay,
     synthesise_optical_steps,
 )
+from pipeline.config import load_gsoe_config
 from tests.conftest import shared_data
 
 SHORT = "alfa_carbonZ_2018-07-18-16-37-39_1.tlog"
@@ -255,7 +255,7 @@ def test_log_without_gnss_exits_2(tmp_path, capsys):
 
 
 def test_bad_replay_config_names_the_field(tmp_path):
-    from gsoe.config import ConfigError
+    from common.config import ConfigError
 
     with pytest.raises(ConfigError, match="replay.wind_settle_s"):
         replay_configs_from_raw({"replay": {"wind_settle_s": -1.0}})

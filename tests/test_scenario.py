@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gsoe.angles import angle_diff_deg
-from gsoe.config import ConfigError
-from nav.configfile import load_gsoe_config
+from common.angles import angle_diff_deg
+from common.config import ConfigError
+from pipeline.config import load_gsoe_config
 from sim.scenario import (
     SCENARIO_DIR,
     TEXTURES,

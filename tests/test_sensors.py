@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize_scalar
 
-from gsoe.angles import angle_diff, wrap_pi
+from common.angles import angle_diff, wrap_pi
 from sim.scenario import (
     AhrsConfig,
     AirspeedConfig,

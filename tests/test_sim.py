@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 from scipy.ndimage import uniform_filter1d
 
+from common.configfile import DEFAULT_CONFIG as DEFAULT_TOML
+from common.logio import read_log
 from fusion.config import ekf_config_from_raw
 from nav.cli import main
-from nav.configfile import DEFAULT_CONFIG as DEFAULT_TOML
-from nav.configfile import load_gsoe_config
-from nav.logio import read_log
+from pipeline.config import load_gsoe_config
 from sim.dynamics import AIRCRAFT_ROOT
 from sim.run import WIND_TRUTH_WINDOW_S, run_flight
 from sim.scenario import load_scenario, scenario_with_overrides
