@@ -101,9 +101,10 @@ class GnssSample:
     3-D fix) and NED ground velocity.
 
     Without a fix (``fix_ok`` false, e.g. in an outage) the position and velocity are NaN.  ``h_acc_m`` /
-    ``v_acc_m_s`` are the receiver's 1-sigma accuracies of one horizontal position axis and one velocity axis
-    (``nan`` when unknown, ``inf`` without a fix); ``n_sats`` is -1 when unknown.  ``lat_deg``, ``lon_deg``,
-    ``alt_msl_m`` are the fix as logged (``nan`` in the simulator).  Components a source does not give are NaN.
+    ``v_acc_m_s`` are the receiver's 1-sigma accuracies of one horizontal position axis and one velocity axis,
+    ``alt_acc_m`` of the vertical position (``nan`` when unknown, ``inf`` without a fix); ``n_sats`` is -1 when
+    unknown.  ``lat_deg``, ``lon_deg``, ``alt_msl_m`` are the fix as logged (``nan`` in the simulator).
+    ``fix_type`` is MAVLink's GPS_FIX_TYPE where the source gives it (-1 otherwise).  Components a source does not give are NaN.
     """
 
     t_us: int
@@ -116,3 +117,5 @@ class GnssSample:
     lat_deg: float = math.nan
     lon_deg: float = math.nan
     alt_msl_m: float = math.nan
+    alt_acc_m: float = math.nan
+    fix_type: int = -1

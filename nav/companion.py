@@ -34,30 +34,29 @@ import logging
 import math
 import queue
 import socket
-import struct
 import threading
 import time
 import zlib
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from common.config import ConfigError, build, in_range
+from common.config import ConfigError, In, Validated, build
+from common.framestream import FRAME_HEADER_SIZE, decode_header, decode_image
 from common.logio import RunLog
-from common.samples import AttitudeSample, GsoeStep, ImuSample
+from common.samples import AirspeedSample, AttitudeSample, BaroSample, GnssSample, ImuSample
+from fusion.config import ekf_config_from_raw
 from gsoe.camera import CameraModel
 from gsoe.config import GsoeConfig
-from nav.gnss_monitor import Consistency, GnssMonitor, GnssMonitorConfig, GnssState
+from nav.gnss_monitor import Announcement, Consistency, GnssMonitor, GnssMonitorConfig, GnssState
 from nav.guidance import GuidanceConfig, TargetGuidance, change_heading_command_fields, forward_camera
 from nav.link import (
-    AirspeedReading,
-    BaroReading,
     CompanionLink,
-    GnssReading,
     HomeReading,
     LinkConfig,
     OutputEstimate,
@@ -65,20 +64,19 @@ from nav.link import (
     now_us,
 )
 from nav.tracker import ExternalTracker, TemplateTracker, TemplateTrackerConfig
+from pipeline.navpipeline import NavPipeline, Sink, pipeline_config_from_raw
 
 log = logging.getLogger(__name__)
 
 SIM_SCHEME = "sim://"
-FRAME_MAGIC = b"GSOF"  # the simulator's frame stream (sim.mavlink_vehicle documents the format)
-FRAME_HEADER_SIZE = 24
 MAV_CMD_USER_1 = 31010  # ground station -> companion: designate the target at pixel (param1, param2)
-QUALITY_WINDOW_STEPS = 30  # optical quality = fraction of valid matches over this many steps (about 1 s)
+MAX_FRAMES_IN_PIPELINE = 8  # frames handed to the pipeline and not yet processed, kept for the tracker
+HOME_BARO_MAX_SKEW_US = 200_000  # a home report and a baro sample this close in time give the baro's ground level
 STATUSTEXT_MAX_CHARS = 50
-MAX_FRAME_SIDE_PX = 16384
 
 
 @dataclass(frozen=True)
-class TrackingConfig:
+class TrackingConfig(Validated):
     """``[companion.tracking]``: where the target's pixel comes from and which camera it refers to.
 
     ``source``: ``"camera"`` (the default template tracker on the companion's own camera frames, designated with
@@ -91,56 +89,36 @@ class TrackingConfig:
 
     source: Literal["camera", "mavlink"] = "camera"
     mount: Literal["belly", "forward"] = "belly"
-    forward_depression_deg: float = 10.0
-    max_age_s: float = 0.5
-
-    def __post_init__(self) -> None:
-        in_range(self.forward_depression_deg, -45.0, 89.0, "forward_depression_deg")
-        in_range(self.max_age_s, 0.0, 60.0, "max_age_s", lo_open=True)
+    forward_depression_deg: Annotated[float, In(-45.0, 89.0)] = 10.0
+    max_age_s: Annotated[float, In(0.0, 60.0, lo_open=True)] = 0.5
 
 
 @dataclass(frozen=True)
-class CompanionConfig:
+class CompanionConfig(Validated):
     """``[companion]`` of the configuration file (sub-tables ``link``, ``gnss``, ``guidance``, ``tracker``).
 
     ``camera_latency_s``: exposure-to-capture delay of the camera stack, subtracted from the capture time;
     ``frame_timeout_s``: no frame for this long = camera lost (reopened every ``reconnect_s``); ``reconnect_s``:
     retry period of the camera and of the autopilot link; ``log_flush_s``: log flush interval (at most 1 s);
     ``status_s``: period of the one-line status in the log; ``max_frame_age_s``: frames older than this when
-    processed are skipped (the loop fell behind); ``use_ekf``: run the EKF; ``ekf_init_wait_s``: without a GNSS
-    fix for this long the EKF starts from air data.
+    processed are skipped (the loop fell behind); ``use_ekf``: run the EKF.  When a frame is processed, how long
+    it waits for attitude, how the EKF starts and when an estimate is stale are the pipeline's (``[pipeline]``).
     """
 
-    camera_latency_s: float = 0.0
-    frame_timeout_s: float = 1.0
-    reconnect_s: float = 2.0
-    log_flush_s: float = 0.5
-    status_s: float = 5.0
-    max_frame_age_s: float = 0.5
+    camera_latency_s: Annotated[float, In(0.0, 5.0)] = 0.0
+    frame_timeout_s: Annotated[float, In(0.01, 60.0)] = 1.0
+    reconnect_s: Annotated[float, In(0.05, 600.0)] = 2.0
+    log_flush_s: Annotated[float, In(0.01, 1.0)] = 0.5
+    status_s: Annotated[float, In(0.1, 3600.0)] = 5.0
+    max_frame_age_s: Annotated[float, In(0.01, 60.0)] = 0.5
     use_ekf: bool = True
-    ekf_init_wait_s: float = 10.0
-    camera_reconnect_s: float = 0.5
-    attitude_wait_s: float = 0.05
-    max_estimate_age_s: float = 0.5
-    announce_min_interval_s: float = 2.0
+    camera_reconnect_s: Annotated[float, In(0.01, 600.0)] = 0.5
+    announce_min_interval_s: Annotated[float, In(0.0, 3600.0)] = 2.0
     link: LinkConfig = field(default_factory=LinkConfig)
     gnss: GnssMonitorConfig = field(default_factory=GnssMonitorConfig)
     guidance: GuidanceConfig = field(default_factory=GuidanceConfig)
     tracker: TemplateTrackerConfig = field(default_factory=TemplateTrackerConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
-
-    def __post_init__(self) -> None:
-        in_range(self.camera_latency_s, 0.0, 5.0, "camera_latency_s")
-        in_range(self.frame_timeout_s, 0.01, 60.0, "frame_timeout_s")
-        in_range(self.reconnect_s, 0.05, 600.0, "reconnect_s")
-        in_range(self.log_flush_s, 0.01, 1.0, "log_flush_s")
-        in_range(self.status_s, 0.1, 3600.0, "status_s")
-        in_range(self.max_frame_age_s, 0.01, 60.0, "max_frame_age_s")
-        in_range(self.ekf_init_wait_s, 0.0, 3600.0, "ekf_init_wait_s")
-        in_range(self.camera_reconnect_s, 0.01, 600.0, "camera_reconnect_s")
-        in_range(self.attitude_wait_s, 0.0, 5.0, "attitude_wait_s")
-        in_range(self.max_estimate_age_s, 0.01, 60.0, "max_estimate_age_s")
-        in_range(self.announce_min_interval_s, 0.0, 3600.0, "announce_min_interval_s")
 
 
 def companion_config_from_raw(raw: dict[str, Any]) -> CompanionConfig:
@@ -153,7 +131,8 @@ def companion_config_from_raw(raw: dict[str, Any]) -> CompanionConfig:
 
 # ------------------------------------------------------------------------------------------------ camera
 class SimFrameClient:
-    """Reads the simulator's TCP frame stream (``sim://HOST:PORT``); ``read()`` -> (vehicle_t_us, frame) | None."""
+    """Reads the simulator's TCP frame stream (``sim://HOST:PORT``, format :mod:`common.framestream`);
+    ``read()`` -> (vehicle_t_us, frame) | None."""
 
     def __init__(self, host: str, port: int, timeout_s: float) -> None:
         self._sock = socket.create_connection((host, port), timeout=timeout_s)
@@ -173,14 +152,11 @@ class SimFrameClient:
         head = self._exact(FRAME_HEADER_SIZE)
         if head is None:
             return None
-        magic, t_us, w, h, ch = struct.unpack("<4sqIIi", head)
-        if magic != FRAME_MAGIC or not (0 < w <= MAX_FRAME_SIDE_PX and 0 < h <= MAX_FRAME_SIDE_PX and ch in (1, 3)):
-            raise OSError("corrupt frame stream header")
-        data = self._exact(w * h * ch)
+        header = decode_header(head)  # CorruptFrameStream, an OSError, when it is not a header
+        data = self._exact(header.payload_size)
         if data is None:
             return None
-        img = np.frombuffer(data, np.uint8).reshape((h, w) if ch == 1 else (h, w, ch))
-        return int(t_us), img
+        return header.t_us, decode_image(header, data)
 
     def close(self) -> None:
         self._sock.close()
@@ -308,164 +284,97 @@ def check_frame(frame: Any, camera: CameraModel) -> tuple[NDArray[np.uint8] | No
 
 
 # ------------------------------------------------------------------------------------------------ estimator
-class Estimator:
-    """GSOE + the EKF (:class:`fusion.ekf.NavEkf`) behind one small interface for the loop.
-
-    The EKF is built at the first GNSS fix the monitor accepts (position and velocity from it, heights referred to
-    the autopilot's home elevation, :class:`nav.link.HomeReading`).  Without any fix for ``ekf_init_wait_s`` it
-    starts from air data instead: position at the local origin, ground velocity = TAS along the heading, height from
-    the baro; its position sigma then says how little is known.  Until then the estimate is invalid and not sent.
-    """
+class CompanionEstimator:
+    """The navigation pipeline behind the companion's inputs: the link's samples routed into it, GNSS through the
+    :class:`GnssMonitor` (a fix reaches the EKF only while the monitor says ``GNSS_OK``), heights referred to the
+    autopilot's home, and the pipeline's estimate mapped onto what the link sends."""
 
     def __init__(self, gsoe_cfg: GsoeConfig, camera: CameraModel, raw: dict[str, Any], cfg: CompanionConfig,
-                 clock: Callable[[], int] = now_us) -> None:
-        from gsoe.cycle import GsoeEstimator
+                 sink: Sink | None = None) -> None:
+        ekf_cfg = ekf_config_from_raw(raw.get("ekf", {})) if cfg.use_ekf else None
+        self.pipe = NavPipeline(gsoe_cfg, ekf_cfg, pipeline_config_from_raw(raw), camera, sink=sink)
+        self.monitor = GnssMonitor(cfg.gnss)
+        self.home_amsl_m = math.nan
+        self._baro: BaroSample | None = None
+        self._ground_set = False
 
-        self.cfg = cfg
-        self.clock = clock
-        self.gsoe = GsoeEstimator(gsoe_cfg, camera)
-        self.ekf: Any = None
-        self.ekf_cfg: Any = None
-        self.why_no_ekf = "EKF disabled in [companion]"
-        if cfg.use_ekf:
-            from fusion.config import ekf_config_from_raw
+    def feed(self, s: Any) -> list[Announcement]:
+        """One validated telemetry sample; returns the GNSS monitor's state changes."""
+        pipe = self.pipe
+        if isinstance(s, AttitudeSample):
+            pipe.on_attitude(s)
+        elif isinstance(s, ImuSample):
+            pipe.on_imu(s)
+        elif isinstance(s, AirspeedSample):
+            pipe.on_airspeed(s)
+        elif isinstance(s, BaroSample):
+            self._baro = s
+            pipe.on_baro(s)
+        elif isinstance(s, GnssSample):
+            return self._gnss(s)
+        elif isinstance(s, HomeReading):
+            self._home(s)
+        return []
 
-            self.ekf_cfg = ekf_config_from_raw(raw)
-            self.why_no_ekf = "EKF waiting for a GNSS fix"
-        self._att: AttitudeSample | None = None
-        self._tas: float = math.nan
-        self._baro_alt: float = math.nan
-        self.home_amsl_m: float = math.nan
-        self._start_us: int | None = None
-        self._recent_valid: list[bool] = []
-        self.last_estimate: Any = None
-        self.newest_att_us = -1
-        self.newest_imu_us = -1
+    def tick(self, now_us: int) -> list[Announcement]:
+        """Advance the clock without a sample (GNSS timeout, frames past their wait, the EKF's air-data start)."""
+        ann = self.monitor.tick(now_us)
+        self.pipe.gnss_enabled = self.monitor.state == GnssState.GNSS_OK
+        self.pipe.poll(now_us)
+        return ann
 
-    # ---------------------------------------------------------------- EKF construction
-    def _build(self, t_us: int, pos_ned: NDArray[np.float64], vel_ned: NDArray[np.float64], how: str) -> None:
-        from fusion.ekf import NavEkf
-
-        self.ekf = NavEkf(self.ekf_cfg, t_us=int(t_us), pos_ned_m=pos_ned, vel_ned_m_s=vel_ned)
-        self.why_no_ekf = ""
-        log.info("EKF started from %s at t=%d us, pos %s m, vel %s m/s", how, t_us, np.round(pos_ned, 1),
-                 np.round(vel_ned, 1))
-
-    def _height_from_baro(self) -> float:
-        return self._baro_alt - self.home_amsl_m if math.isfinite(self.home_amsl_m) else math.nan
-
-    def maybe_start_from_air_data(self, t_us: int) -> None:
-        if self.ekf is not None or self.ekf_cfg is None:
-            return
-        self._start_us = t_us if self._start_us is None else self._start_us
-        if (t_us - self._start_us) / 1e6 < self.cfg.ekf_init_wait_s or self._att is None:
-            return
-        h = self._height_from_baro()
-        if not (math.isfinite(self._tas) and math.isfinite(h)):
-            return
-        yaw = self._att.yaw_rad
-        self._build(t_us, np.array([0.0, 0.0, -h]), np.array([self._tas * math.cos(yaw), self._tas * math.sin(yaw),
-                                                              0.0]), "air data (no GNSS fix)")
-
-    # ---------------------------------------------------------------- inputs
-    def attitude(self, s: AttitudeSample) -> None:
-        if self.gsoe.push_attitude(s):
-            self.newest_att_us = max(self.newest_att_us, s.t_us)
-        self._att = s
-
-    def imu(self, s: ImuSample) -> None:
-        if self.gsoe.push_imu(s):
-            self.newest_imu_us = max(self.newest_imu_us, s.t_us)
-        if self.ekf is not None and self._att is not None:
-            # the attitude the optical frames use: AHRS latency removed, noise averaged (gsoe.attitude)
-            self.ekf.predict(s, self.gsoe.fusion_attitude(s.t_us) or self._att)
-
-    def covers(self, t_us: int) -> bool:
-        """Attitude and IMU samples reach the exposure time ``t_us``."""
-        return self.newest_att_us >= t_us and self.newest_imu_us >= t_us
-
-    def airspeed(self, s: AirspeedReading) -> None:
-        self._tas = s.tas_m_s
-        if self.ekf is not None:
-            self.ekf.fuse_airspeed(s.t_us, s.tas_m_s)
-
-    def baro(self, s: BaroReading) -> None:
-        self._baro_alt = s.baro_alt_m
-        h = self._height_from_baro()
-        if self.ekf is not None and math.isfinite(h):
-            self.ekf.fuse_baro(s.t_us, h)
-
-    def home(self, s: HomeReading) -> None:
+    def _home(self, s: HomeReading) -> None:
+        """The home elevation (GNSS heights are referred to it) and, once, the baro's ground level: the baro
+        altitude less the autopilot's height above home, read together."""
         self.home_amsl_m = s.alt_amsl_m - s.rel_alt_m
+        b = self._baro
+        if not self._ground_set and b is not None and abs(s.t_us - b.t_us) <= HOME_BARO_MAX_SKEW_US:
+            self.pipe.on_ground_level(b.alt_m - s.rel_alt_m)
+            self._ground_set = True
+            log.info("baro ground level %.1f m (pressure altitude)", b.alt_m - s.rel_alt_m)
 
-    def gnss(self, s: GnssReading) -> None:
-        r = s.report
-        if r.pos_ne_m is None or not math.isfinite(self.home_amsl_m):
-            return
-        pos = np.array([r.pos_ne_m[0], r.pos_ne_m[1], -(s.alt_amsl_m - self.home_amsl_m)])
-        vel = None if r.vel_ne_m_s is None else np.asarray(r.vel_ne_m_s, dtype=float)
-        if self.ekf is None:
-            if self.ekf_cfg is not None and vel is not None and self._att is not None:
-                self._build(r.t_us, pos, np.array([vel[0], vel[1], 0.0]), "the first GNSS fix")
-            return
-        hacc = r.hacc_m if math.isfinite(r.hacc_m) and r.hacc_m > 0 else None
-        vacc = s.vacc_m if math.isfinite(s.vacc_m) and s.vacc_m > 0 else None
-        sacc = s.vel_acc_m_s if math.isfinite(s.vel_acc_m_s) and s.vel_acc_m_s > 0 else None
-        self.ekf.fuse_gnss(r.t_us, pos, vel, pos_sigma_ne_m=hacc, pos_sigma_d_m=vacc, vel_sigma_ne_m_s=sacc)
-
-    def frame(self, t_us: int, gray: NDArray[np.uint8]) -> list[GsoeStep]:
-        h = self.last_estimate.height_agl_m if self.last_estimate is not None else self._height_from_baro()
-        steps = self.gsoe.process_frame(t_us, gray, float(h))
-        if not steps and self.gsoe.featureless:
-            self._recent_valid.append(False)     # featureless ground: no cycle runs, a frame without a match
-        for st in steps:
-            if not st.new_cycle:
-                self._recent_valid.append(bool(st.valid))
-            if self.ekf is not None:
-                self.ekf.fuse_optical(st)
-        del self._recent_valid[:-QUALITY_WINDOW_STEPS]
-        return steps
-
-    # ---------------------------------------------------------------- outputs
-    def refresh(self) -> Any:
-        self.last_estimate = self.ekf.estimate() if self.ekf is not None else None
-        return self.last_estimate
+    def _gnss(self, s: GnssSample) -> list[Announcement]:
+        """A fix from the link (north/east from its first fix): its height referred to home, then the monitor's
+        verdict decides whether the pipeline may use it."""
+        d = -(s.alt_msl_m - self.home_amsl_m)
+        s = dataclasses.replace(s, pos_ned_m=np.array([s.pos_ned_m[0], s.pos_ned_m[1], d]))
+        ann = self.monitor.update(s, self.consistency())
+        self.pipe.gnss_enabled = self.monitor.state == GnssState.GNSS_OK
+        self.pipe.on_gnss(s)
+        return ann
 
     def consistency(self) -> Consistency | None:
-        """What the EKF and air data expect of a GNSS report now (position jump and velocity checks)."""
-        e = self.last_estimate
+        """What the estimate and air data expect of a GNSS report now (position jump and velocity checks)."""
+        pipe = self.pipe
+        e = pipe.estimate()
         if e is None:
             return None
         pos_sigma = float(np.max(np.asarray(e.pos_ne_sigma_m, dtype=float)[:2]))
         air_vel = None
         air_sigma = 0.0
-        if self._att is not None and math.isfinite(self._tas) and self.ekf_cfg is not None:
-            yaw = self._att.yaw_rad - float(e.yaw_bias_rad)
-            air_vel = (self._tas * np.array([math.cos(yaw), math.sin(yaw)])
-                       + np.asarray(e.wind_ne_m_s, dtype=float)[:2])
+        att, tas = pipe.attitude, pipe.tas_m_s
+        if att is not None and math.isfinite(tas) and pipe.ekf_cfg is not None:
+            yaw = att.yaw_rad - float(e.yaw_bias_rad)
+            air_vel = tas * np.array([math.cos(yaw), math.sin(yaw)]) + np.asarray(e.wind_ne_m_s, dtype=float)[:2]
             air_sigma = math.sqrt(float(np.max(np.asarray(e.wind_ne_sigma_m_s, dtype=float)[:2])) ** 2
-                                  + self.ekf_cfg.tas_sigma_m_s ** 2 + (self._tas * float(e.heading_sigma_rad)) ** 2)
+                                  + pipe.ekf_cfg.tas_sigma_m_s ** 2 + (tas * float(e.heading_sigma_rad)) ** 2)
         return Consistency(pred_pos_ne_m=np.asarray(e.pos_ne_m, dtype=float)[:2], pred_pos_sigma_m=pos_sigma,
                            air_vel_ne_m_s=air_vel, air_vel_sigma_m_s=air_sigma)
 
     @property
     def quality(self) -> float:
-        """Fraction of valid optical matches over the last :data:`QUALITY_WINDOW_STEPS` steps."""
-        return float(np.mean(self._recent_valid)) if self._recent_valid else 0.0
+        return self.pipe.quality
 
-    def output(self, gnss_state: GnssState) -> OutputEstimate:
-        e = self.last_estimate
+    def output(self, t_us: int) -> OutputEstimate:
+        """The estimate as the link sends it (invalid, with the reason, before the EKF starts)."""
+        e = self.pipe.estimate()
         if e is None:
             nan = math.nan
             z2 = np.full(2, nan)
-            return OutputEstimate(self.clock(), False, nan, nan, nan, z2, np.full((2, 2), nan), z2,
-                                  np.full((2, 2), nan), nan, self.quality, int(gnss_state), reason=self.why_no_ekf,
+            return OutputEstimate(t_us, False, nan, nan, nan, z2, np.full((2, 2), nan), z2, np.full((2, 2), nan),
+                                  nan, self.quality, int(self.monitor.state), reason=self.pipe.why_no_estimate(),
                                   home_amsl_m=self.home_amsl_m)
-        out = estimate_to_output(e, int(gnss_state), self.quality, self.home_amsl_m)
-        age_s = (self.clock() - int(e.t_us)) / 1e6
-        if out.valid and age_s > self.cfg.max_estimate_age_s:
-            out = dataclasses.replace(out, valid=False, reason=f"estimate stale ({age_s:.1f} s old: no IMU)")
-        return out
+        return estimate_to_output(e, int(self.monitor.state), self.quality, self.home_amsl_m)
 
 
 def estimate_to_output(e: Any, gnss_state: int, quality: float, home_amsl_m: float = math.nan) -> OutputEstimate:
@@ -499,10 +408,11 @@ class Counters:
 
 
 @dataclass
-class _Pending:
+class _Given:
+    """A frame handed to the pipeline: kept until the pipeline has processed it (for the tracker and latency)."""
+
     t_us: int
     frame: Any
-    gray: NDArray[np.uint8]
     capture_us: int
 
 
@@ -524,8 +434,9 @@ class Companion:
         self.runlog = RunLog(log_dir, flush_interval_s=self.cfg.log_flush_s)
         self.destroy_link_native = True
         self.link = CompanionLink(connect_url, self.cfg.link)
-        self.estimator = Estimator(gsoe_cfg, self.camera, raw, self.cfg)
-        self.monitor = GnssMonitor(self.cfg.gnss)
+        self.estimator = CompanionEstimator(gsoe_cfg, self.camera, raw, self.cfg, sink=self._log)
+        self.pipe = self.estimator.pipe
+        self.monitor = self.estimator.monitor
         self.tracking_camera = tracking_camera(self.camera, self.cfg.tracking)
         self.guidance = TargetGuidance(self.tracking_camera, self.cfg.guidance)
         self.tracker: TemplateTracker | ExternalTracker
@@ -540,7 +451,7 @@ class Companion:
         self._last_att: AttitudeSample | None = None
         self._last_suppress_log: dict[str, float] = {}
         self._link_thread: threading.Thread | None = None
-        self._pending: _Pending | None = None
+        self._given: deque[_Given] = deque(maxlen=MAX_FRAMES_IN_PIPELINE)
         self._last_frame_t_us: int | None = None
         self._last_crc: int | None = None
         self._was_valid: bool | None = None
@@ -588,53 +499,23 @@ class Companion:
 
     # ---------------------------------------------------------------- inputs
     def _drain_telemetry(self) -> None:
-        est = self.estimator
         while True:
             try:
                 s = self.link.samples.get_nowait()
             except queue.Empty:
                 return
             try:
-                if isinstance(s, AttitudeSample):
-                    est.attitude(s)
-                    self._last_att = s
-                    self._log("attitude", {"t_us": s.t_us, "roll_rad": s.roll_rad, "pitch_rad": s.pitch_rad,
-                                           "yaw_rad": s.yaw_rad})
-                elif isinstance(s, ImuSample):
-                    est.imu(s)
-                    g, a = s.gyro_b_rad_s, s.accel_b_m_s2
-                    self._log("imu", {"t_us": s.t_us, "gyro_x_rad_s": g[0], "gyro_y_rad_s": g[1],
-                                      "gyro_z_rad_s": g[2], "accel_x_m_s2": a[0], "accel_y_m_s2": a[1],
-                                      "accel_z_m_s2": a[2]})
-                elif isinstance(s, AirspeedReading):
-                    est.airspeed(s)
-                    self._log("airspeed", {"t_us": s.t_us, "tas_m_s": s.tas_m_s})
-                elif isinstance(s, BaroReading):
-                    est.baro(s)
-                    self._log("baro", {"t_us": s.t_us, "alt_m": s.baro_alt_m})
-                elif isinstance(s, GnssReading):
-                    self._gnss(s)
-                elif isinstance(s, HomeReading):
-                    est.home(s)
-                elif isinstance(s, TrackReading):
+                if isinstance(s, TrackReading):
                     self._track_report(s)
+                    continue
+                if isinstance(s, AttitudeSample):
+                    self._last_att = s
+                for ann in self.estimator.feed(s):
+                    self._announce(ann.t_us, ann.old, ann.new, ann.reason, ann.text)
             except Exception as e:  # the estimators must not take the loop down
                 self.counters.estimator_errors += 1
                 log.exception("estimator failed on %s: %s", type(s).__name__, e)
-
-    def _gnss(self, s: GnssReading) -> None:
-        r = s.report
-        for ann in self.monitor.update(r, self.estimator.consistency()):
-            self._announce(ann.t_us, ann.old, ann.new, ann.reason, ann.text)
-        pos = r.pos_ne_m if r.pos_ne_m is not None else (math.nan, math.nan)
-        vel = r.vel_ne_m_s if r.vel_ne_m_s is not None else (math.nan, math.nan)
-        self._log("gnss", {"t_us": r.t_us, "fix_type": r.fix_type, "satellites": r.satellites,
-                           "hacc_m": r.hacc_m, "pos_n_m": pos[0], "pos_e_m": pos[1],
-                           "vel_n_m_s": vel[0], "vel_e_m_s": vel[1], "lat_deg": s.lat_deg,
-                           "lon_deg": s.lon_deg, "alt_amsl_m": s.alt_amsl_m,
-                           "state": int(self.monitor.state), "level": int(self.monitor.last_level)})
-        if self.monitor.state == GnssState.GNSS_OK:
-            self.estimator.gnss(s)
+            self._handle_results()
 
     def _announce(self, t_us: int, old: GnssState, new: GnssState, reason: str, text: str) -> None:
         self._log("gnss_state", {"t_us": t_us, "old": int(old), "new": int(new), "name": new.name,
@@ -652,7 +533,7 @@ class Companion:
 
     # ---------------------------------------------------------------- frames
     def _take_frame(self, item: tuple[int, Any, bool, int]) -> None:
-        """Check a new frame and make it the pending one (a frame already pending is processed first)."""
+        """Check a new frame and hand it to the pipeline (which holds it until attitude covers its exposure)."""
         t_us, frame, vehicle_clock, capture_us = item
         if vehicle_clock:
             sync = self.link.guard._sync.get("attitude")
@@ -676,38 +557,22 @@ class Companion:
             self.counters.frames_stale += 1
             return
         self._last_frame_t_us = t_us
-        if self._pending is not None:
-            self._process(self._pending)
-        self._pending = _Pending(t_us, frame, gray, capture_us)
-
-    def _process_pending(self, now: int) -> None:
-        p = self._pending
-        if p is None:
-            return
-        if self.estimator.covers(p.t_us) or now - p.capture_us >= self.cfg.attitude_wait_s * 1e6:
-            self._pending = None
-            self._process(p)
-
-    def _process(self, p: _Pending) -> None:
         self.counters.frames += 1
-        try:
-            steps = self.estimator.frame(p.t_us, p.gray)
-        except Exception as e:
-            self.counters.estimator_errors += 1
-            log.exception("optical estimator failed: %s", e)
-            steps = []
-        for st in steps:
-            self.counters.steps += 1
-            self._log("gsoe", {"t_us": st.t_us, "base_t_us": st.base_t_us, "cycle_id": st.cycle_id,
-                               "step": st.step, "dx_px": st.dx_px, "dy_px": st.dy_px,
-                               "base_yaw_rad": st.base_yaw_rad, "yaw_rad": st.yaw_rad, "gsd_m_px": st.gsd_m_px,
-                               "height_agl_m": st.height_agl_m, "rel_rot_rad": st.rel_rot_rad,
-                               "psr": st.quality.psr, "texture_std": st.quality.texture_std,
-                               "ssd_per_px": st.quality.ssd_per_px, "match_sigma_px": st.quality.match_sigma_px,
-                               "valid": st.valid, "new_cycle": st.new_cycle})
-        self._outputs(p.t_us, p.capture_us, steps)
-        if isinstance(self.tracker, TemplateTracker):
-            self._guide(p.t_us, p.frame)
+        self._given.append(_Given(t_us, frame, capture_us))
+        self.pipe.on_frame(t_us, gray)
+        self._handle_results()
+
+    def _handle_results(self) -> None:
+        """Outputs and guidance for every frame the pipeline processed."""
+        for res in self.pipe.drain():
+            g = None
+            while self._given and self._given[0].t_us <= res.t_us:
+                g = self._given.popleft()
+            given = g if g is not None and g.t_us == res.t_us else None
+            self.counters.steps += len(res.steps)
+            self._outputs(res.t_us, given.capture_us if given is not None else None)
+            if given is not None and isinstance(self.tracker, TemplateTracker):
+                self._guide(res.t_us, given.frame)
 
     def _reject_frame(self, why: str) -> None:
         key = why.split(" (")[0]
@@ -717,16 +582,11 @@ class Companion:
             log.warning("frame rejected: %s (%d so far)", why, n)
         self._log("frames_rejected", {"t_us": now_us(), "reason": why})
 
-    def _outputs(self, t_us: int, capture_us: int | None, steps: list[GsoeStep]) -> None:
-        """Refresh the estimate and send it (after every frame; between frames at the fastest output rate, so a
-        camera failure does not silence the outputs the EKF can still stand behind, nor the status values)."""
+    def _outputs(self, t_us: int, capture_us: int | None) -> None:
+        """Send the estimate (after every frame; between frames at the fastest output rate, so a camera failure
+        does not silence the outputs the EKF can still stand behind, nor the status values)."""
         self._last_output = time.monotonic()
-        e = self.estimator.refresh()
-        if e is not None and steps:
-            self._log("ekf", e.as_record())
-            for st in self.estimator.ekf.status().values():
-                self._log("aid_status", st.as_record())
-        out = self.estimator.output(self.monitor.state)
+        out = self._output()
         reason = self.link.send_estimate(out, capture_us)
         sent_us = now_us()
         valid = not reason
@@ -747,6 +607,9 @@ class Companion:
                               "wind_n_m_s": out.wind_ne_m_s[0], "wind_e_m_s": out.wind_ne_m_s[1],
                               "quality": out.quality, "gnss_state": int(self.monitor.state),
                               "latency_us": sent_us - capture_us if capture_us is not None else None})
+
+    def _output(self) -> OutputEstimate:
+        return self.estimator.output(now_us())
 
     def _validity_changed(self, valid: bool, reason: str) -> None:
         first = self._was_valid is None
@@ -771,7 +634,7 @@ class Companion:
         if (not self.tracker.active and not self._guiding) or not self.guidance.due(t_us) or self._last_att is None:
             return
         res = self.tracker.update(t_us, frame)
-        out = self.estimator.output(self.monitor.state)
+        out = self._output()
         a = self._last_att
         fix, cmd = self.guidance.step(t_us, res.xy_px if res.valid else None, a.roll_rad, a.pitch_rad, a.yaw_rad,
                                       out.height_agl_m, out.drift_rad, out.drift_sigma_rad, out.valid)
@@ -840,18 +703,15 @@ class Companion:
                 self._ensure_link()
                 self._drain_telemetry()
                 self._gcs_commands()
-                t_now = now_us()
-                self.estimator.maybe_start_from_air_data(t_now)
-                for ann in self.monitor.tick(t_now):
+                for ann in self.estimator.tick(now_us()):
                     self._announce(ann.t_us, ann.old, ann.new, ann.reason, ann.text)
-                self._process_pending(t_now)
-                item = self.camera_thread.latest(poll_s if self._pending is not None else frame_wait_s)
+                self._handle_results()
+                item = self.camera_thread.latest(poll_s if self.pipe.frames_pending else frame_wait_s)
                 if item is not None:
                     self._drain_telemetry()
                     self._take_frame(item)
-                    self._process_pending(now_us())
                 if time.monotonic() - self._last_output >= self._output_period_s:
-                    self._outputs(now_us(), None, [])
+                    self._outputs(now_us(), None)
                 if now - last_house >= min(1.0, self.cfg.log_flush_s):
                     last_house = now
                     self._housekeeping()

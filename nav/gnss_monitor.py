@@ -24,11 +24,13 @@ import enum
 import logging
 import math
 from dataclasses import dataclass
+from typing import Annotated
 
 import numpy as np
 from numpy.typing import NDArray
 
-from common.config import in_range, require
+from common.config import In, Validated, require
+from common.samples import GnssSample
 
 log = logging.getLogger(__name__)
 
@@ -45,48 +47,25 @@ class GnssState(enum.IntEnum):
 
 
 @dataclass(frozen=True)
-class GnssMonitorConfig:
+class GnssMonitorConfig(Validated):
     """``[companion.gnss]`` thresholds (units in the names)."""
 
-    min_sats_ok: int = 6
-    min_sats_denied: int = 4
-    hacc_ok_m: float = 5.0
-    hacc_denied_m: float = 20.0
-    jump_min_m: float = 50.0
-    jump_sigma: float = 5.0
-    vel_min_m_s: float = 5.0
-    vel_sigma: float = 4.0
-    timeout_s: float = 1.5
-    worsen_after_s: float = 0.0
-    recover_after_s: float = 5.0
+    min_sats_ok: Annotated[int, In(0, 100)] = 6
+    min_sats_denied: Annotated[int, In(0, 100)] = 4
+    hacc_ok_m: Annotated[float, In(0.0, 1e4, lo_open=True)] = 5.0
+    hacc_denied_m: Annotated[float, In(0.0, 1e5, lo_open=True)] = 20.0
+    jump_min_m: Annotated[float, In(0.0, 1e5)] = 50.0
+    jump_sigma: Annotated[float, In(0.0, 1e3)] = 5.0
+    vel_min_m_s: Annotated[float, In(0.0, 1e3)] = 5.0
+    vel_sigma: Annotated[float, In(0.0, 1e3)] = 4.0
+    timeout_s: Annotated[float, In(0.01, 600.0)] = 1.5
+    worsen_after_s: Annotated[float, In(0.0, 600.0)] = 0.0
+    recover_after_s: Annotated[float, In(0.0, 3600.0)] = 5.0
 
     def __post_init__(self) -> None:
-        in_range(self.min_sats_ok, 0, 100, "min_sats_ok")
-        in_range(self.min_sats_denied, 0, 100, "min_sats_denied")
+        super().__post_init__()
         require(self.min_sats_denied <= self.min_sats_ok, "min_sats_denied", "must be <= min_sats_ok")
-        in_range(self.hacc_ok_m, 0.0, 1e4, "hacc_ok_m", lo_open=True)
-        in_range(self.hacc_denied_m, 0.0, 1e5, "hacc_denied_m", lo_open=True)
         require(self.hacc_denied_m >= self.hacc_ok_m, "hacc_denied_m", "must be >= hacc_ok_m")
-        in_range(self.jump_min_m, 0.0, 1e5, "jump_min_m")
-        in_range(self.jump_sigma, 0.0, 1e3, "jump_sigma")
-        in_range(self.vel_min_m_s, 0.0, 1e3, "vel_min_m_s")
-        in_range(self.vel_sigma, 0.0, 1e3, "vel_sigma")
-        in_range(self.timeout_s, 0.01, 600.0, "timeout_s")
-        in_range(self.worsen_after_s, 0.0, 600.0, "worsen_after_s")
-        in_range(self.recover_after_s, 0.0, 3600.0, "recover_after_s")
-
-
-@dataclass(frozen=True, slots=True)
-class GnssReport:
-    """One GNSS receiver report.  ``pos_ne_m``: local north/east (m) of the fix, ``vel_ne_m_s`` its ground
-    velocity; either may be ``None`` when not reported.  ``hacc_m`` NaN when the receiver gives no accuracy."""
-
-    t_us: int
-    fix_type: int
-    satellites: int
-    hacc_m: float
-    pos_ne_m: NDArray[np.float64] | None = None
-    vel_ne_m_s: NDArray[np.float64] | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -117,6 +96,12 @@ def _finite(a: NDArray[np.float64] | None, n: int = 2) -> bool:
     return a is not None and np.shape(a) == (n,) and bool(np.all(np.isfinite(a)))
 
 
+def _ne(v: NDArray[np.float64]) -> NDArray[np.float64] | None:
+    """The north/east part of a NED vector, None unless both are finite."""
+    ne = np.asarray(v, dtype=float)[:2]
+    return ne if ne.shape == (2,) and bool(np.all(np.isfinite(ne))) else None
+
+
 class GnssMonitor:
     """The state machine.  Feed every report with :meth:`update` and call :meth:`tick` regularly (timeouts)."""
 
@@ -131,40 +116,41 @@ class GnssMonitor:
         self._cand_since_us = 0
         self.counts = {s.name: 0 for s in GnssState}
 
-    def grade(self, report: GnssReport, expect: Consistency | None = None) -> tuple[GnssState, str]:
-        """The instant level of one report and why (no state change)."""
+    def grade(self, s: GnssSample, expect: Consistency | None = None) -> tuple[GnssState, str]:
+        """The instant level of one fix and why (no state change).  A component the receiver did not report is
+        NaN in the sample and not checked; the fix type is ``fix_type`` or, where the source gives none, 3-D
+        for ``fix_ok``."""
         c = self.config
-        if report.fix_type < GPS_FIX_TYPE_3D:
-            return GnssState.GNSS_DENIED, f"no 3D fix (fix type {report.fix_type})"
-        if report.satellites < c.min_sats_denied:
-            return GnssState.GNSS_DENIED, f"{report.satellites} satellites < {c.min_sats_denied}"
-        if math.isfinite(report.hacc_m) and report.hacc_m > c.hacc_denied_m:
-            return GnssState.GNSS_DENIED, f"accuracy {report.hacc_m:.1f} m > {c.hacc_denied_m} m"
-        if report.pos_ne_m is not None and not _finite(report.pos_ne_m):
+        fix_type = s.fix_type if s.fix_type >= 0 else (GPS_FIX_TYPE_3D if s.fix_ok else 0)
+        if fix_type < GPS_FIX_TYPE_3D:
+            return GnssState.GNSS_DENIED, f"no 3D fix (fix type {fix_type})"
+        if s.n_sats < c.min_sats_denied:
+            return GnssState.GNSS_DENIED, f"{s.n_sats} satellites < {c.min_sats_denied}"
+        if math.isfinite(s.h_acc_m) and s.h_acc_m > c.hacc_denied_m:
+            return GnssState.GNSS_DENIED, f"accuracy {s.h_acc_m:.1f} m > {c.hacc_denied_m} m"
+        pos, vel = _ne(s.pos_ned_m), _ne(s.vel_ned_m_s)
+        if pos is None:
             return GnssState.GNSS_DENIED, "non-finite position"
-        if report.vel_ne_m_s is not None and not _finite(report.vel_ne_m_s):
-            return GnssState.GNSS_DENIED, "non-finite velocity"
-        if (expect is not None and report.pos_ne_m is not None and _finite(expect.pred_pos_ne_m)
-                and math.isfinite(expect.pred_pos_sigma_m)):
-            jump = float(np.hypot(*(report.pos_ne_m - expect.pred_pos_ne_m)))  # type: ignore[operator]
+        if expect is not None and _finite(expect.pred_pos_ne_m) and math.isfinite(expect.pred_pos_sigma_m):
+            jump = float(np.hypot(*(pos - expect.pred_pos_ne_m)))  # type: ignore[operator]
             gate = max(c.jump_min_m, c.jump_sigma * expect.pred_pos_sigma_m)
             if jump > gate:
                 return GnssState.GNSS_DENIED, f"position jump {jump:.0f} m > {gate:.0f} m (spoofing?)"
         level, why = GnssState.GNSS_OK, "3D fix"
-        if report.satellites < c.min_sats_ok:
-            level, why = GnssState.GNSS_DEGRADED, f"{report.satellites} satellites < {c.min_sats_ok}"
-        elif math.isfinite(report.hacc_m) and report.hacc_m > c.hacc_ok_m:
-            level, why = GnssState.GNSS_DEGRADED, f"accuracy {report.hacc_m:.1f} m > {c.hacc_ok_m} m"
-        if (expect is not None and report.vel_ne_m_s is not None and _finite(expect.air_vel_ne_m_s)
+        if s.n_sats < c.min_sats_ok:
+            level, why = GnssState.GNSS_DEGRADED, f"{s.n_sats} satellites < {c.min_sats_ok}"
+        elif math.isfinite(s.h_acc_m) and s.h_acc_m > c.hacc_ok_m:
+            level, why = GnssState.GNSS_DEGRADED, f"accuracy {s.h_acc_m:.1f} m > {c.hacc_ok_m} m"
+        if (expect is not None and vel is not None and _finite(expect.air_vel_ne_m_s)
                 and math.isfinite(expect.air_vel_sigma_m_s)):
-            dv = float(np.hypot(*(report.vel_ne_m_s - expect.air_vel_ne_m_s)))  # type: ignore[operator]
+            dv = float(np.hypot(*(vel - expect.air_vel_ne_m_s)))  # type: ignore[operator]
             gate = max(c.vel_min_m_s, c.vel_sigma * expect.air_vel_sigma_m_s)
             if dv > gate:
                 level, why = GnssState.GNSS_DEGRADED, f"velocity disagrees with air data by {dv:.1f} m/s"
         return level, why
 
-    def update(self, report: GnssReport, expect: Consistency | None = None) -> list[Announcement]:
-        """Grade a report and advance the state machine; returns the transitions (0 or 1)."""
+    def update(self, report: GnssSample, expect: Consistency | None = None) -> list[Announcement]:
+        """Grade a fix and advance the state machine; returns the transitions (0 or 1)."""
         if self._last_report_t_us is not None and report.t_us < self._last_report_t_us:
             log.warning("GNSS report time went backwards (%d < %d us): ignored", report.t_us, self._last_report_t_us)
             return []

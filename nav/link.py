@@ -8,9 +8,9 @@ sample              source                                          becomes
 ==================  ==============================================  =======================================
 attitude            ``telemetry.subscribe_attitude_euler``           :class:`common.samples.AttitudeSample`
 IMU                 ``telemetry.subscribe_scaled_imu`` (SCALED_IMU)  :class:`common.samples.ImuSample`
-airspeed            ``telemetry.subscribe_fixedwing_metrics``        :class:`AirspeedReading` (VFR_HUD TAS)
-baro                ``telemetry.subscribe_scaled_pressure``          :class:`BaroReading` (ISA pressure altitude)
-GNSS                ``MavlinkDirect`` GPS_RAW_INT (one message with  :class:`nav.gnss_monitor.GnssReport`
+airspeed            ``telemetry.subscribe_fixedwing_metrics``        :class:`common.samples.AirspeedSample` (VFR_HUD)
+baro                ``telemetry.subscribe_scaled_pressure``          :class:`common.samples.BaroSample` (ISA)
+GNSS                ``MavlinkDirect`` GPS_RAW_INT (one message with  :class:`common.samples.GnssSample`
                     fix type, satellites, accuracy and velocity;
                     MAVSDK's telemetry splits them over two streams)
 home elevation      ``telemetry.subscribe_position``                 :class:`HomeReading`
@@ -58,15 +58,15 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
 
 from common.angles import wrap_360
-from common.config import in_range
-from common.samples import AttitudeSample, ImuSample
-from nav.gnss_monitor import GnssReport
+from common.config import In, Validated
+from common.samples import AirspeedSample, AttitudeSample, BaroSample, GnssSample, ImuSample
+from nav.gnss_monitor import GPS_FIX_TYPE_3D
 
 log = logging.getLogger(__name__)
 
@@ -88,9 +88,12 @@ MAV_SEVERITY = {"emergency": 0, "alert": 1, "critical": 2, "error": 3, "warning"
 NAMED_VALUE_MAX_CHARS = 10
 LATENCY_HISTORY = 100_000  # capture-to-sent latencies kept per output kind
 
+_OutputRateHz = Annotated[float, In(0.01, 100.0)]
+_MavlinkId = Annotated[int, In(1, 255)]
+
 
 @dataclass(frozen=True)
-class LinkConfig:
+class LinkConfig(Validated):
     """``[companion.link]``: connection, output switches and rates, output gates (units in the names).
 
     ``system_id``/``component_id``: the companion's MAVLink identity (the vehicle's system id; component 191,
@@ -99,73 +102,31 @@ class LinkConfig:
     does not estimate.
     """
 
-    connect_timeout_s: float = 10.0
+    connect_timeout_s: Annotated[float, In(0.1, 600.0)] = 10.0
     named_values: Literal["named_value_float", "debug_vect", "off"] = "named_value_float"
-    named_values_hz: float = 5.0
+    named_values_hz: _OutputRateHz = 5.0
     vision_speed: bool = True
-    vision_speed_hz: float = 10.0
+    vision_speed_hz: _OutputRateHz = 10.0
     wind_cov: bool = True
     wind_ardupilot: bool = True
-    wind_hz: float = 2.0
+    wind_hz: _OutputRateHz = 2.0
     statustext: bool = True
     guidance: bool = True
-    max_vel_sigma_m_s: float = 2.0
-    max_wind_sigma_m_s: float = 3.0
-    max_drift_sigma_deg: float = 5.0
-    max_ground_speed_m_s: float = 100.0
-    unknown_vertical_var_m2_s2: float = 25.0
-    max_clock_backwards_s: float = 0.5
-    clock_window_s: float = 10.0
-    queue_size: int = 4096
-    unknown_vertical_sigma_m_s: float = 5.0
+    max_vel_sigma_m_s: Annotated[float, In(0.0, 100.0, lo_open=True)] = 2.0
+    max_wind_sigma_m_s: Annotated[float, In(0.0, 100.0, lo_open=True)] = 3.0
+    max_drift_sigma_deg: Annotated[float, In(0.0, 90.0, lo_open=True)] = 5.0
+    max_ground_speed_m_s: Annotated[float, In(1.0, 1000.0)] = 100.0
+    unknown_vertical_var_m2_s2: Annotated[float, In(0.0, 1e6, lo_open=True)] = 25.0
+    max_clock_backwards_s: Annotated[float, In(0.0, 3600.0)] = 0.5
+    clock_window_s: Annotated[float, In(0.1, 3600.0)] = 10.0
+    queue_size: Annotated[int, In(16, 1_000_000)] = 4096
+    unknown_vertical_sigma_m_s: Annotated[float, In(0.0, 1e3, lo_open=True)] = 5.0
     status_values: bool = True
-    system_id: int = 1
-    component_id: int = MAV_COMP_ID_ONBOARD_COMPUTER
-
-    def __post_init__(self) -> None:
-        in_range(self.connect_timeout_s, 0.1, 600.0, "connect_timeout_s")
-        in_range(self.unknown_vertical_sigma_m_s, 0.0, 1e3, "unknown_vertical_sigma_m_s", lo_open=True)
-        in_range(self.system_id, 1, 255, "system_id")
-        in_range(self.component_id, 1, 255, "component_id")
-        for name in ("named_values_hz", "vision_speed_hz", "wind_hz"):
-            in_range(getattr(self, name), 0.01, 100.0, name)
-        in_range(self.max_vel_sigma_m_s, 0.0, 100.0, "max_vel_sigma_m_s", lo_open=True)
-        in_range(self.max_wind_sigma_m_s, 0.0, 100.0, "max_wind_sigma_m_s", lo_open=True)
-        in_range(self.max_drift_sigma_deg, 0.0, 90.0, "max_drift_sigma_deg", lo_open=True)
-        in_range(self.max_ground_speed_m_s, 1.0, 1000.0, "max_ground_speed_m_s")
-        in_range(self.unknown_vertical_var_m2_s2, 0.0, 1e6, "unknown_vertical_var_m2_s2", lo_open=True)
-        in_range(self.max_clock_backwards_s, 0.0, 3600.0, "max_clock_backwards_s")
-        in_range(self.clock_window_s, 0.1, 3600.0, "clock_window_s")
-        in_range(self.queue_size, 16, 1_000_000, "queue_size")
+    system_id: _MavlinkId = 1
+    component_id: _MavlinkId = MAV_COMP_ID_ONBOARD_COMPUTER
 
 
 # ------------------------------------------------------------------------------------------------ samples
-@dataclass(frozen=True, slots=True)
-class AirspeedReading:
-    t_us: int
-    tas_m_s: float
-
-
-@dataclass(frozen=True, slots=True)
-class BaroReading:
-    """Pressure altitude (ISA) from SCALED_PRESSURE; its offset to the ground is the EKF's business."""
-
-    t_us: int
-    baro_alt_m: float
-
-
-@dataclass(frozen=True, slots=True)
-class GnssReading:
-    """A GNSS report (for :class:`nav.gnss_monitor.GnssMonitor`) plus what the EKF needs."""
-
-    report: GnssReport
-    lat_deg: float
-    lon_deg: float
-    alt_amsl_m: float
-    vacc_m: float
-    vel_acc_m_s: float
-
-
 @dataclass(frozen=True, slots=True)
 class HomeReading:
     """The autopilot's altitude above its home (GLOBAL_POSITION_INT ``relative_alt``) and AMSL: their difference
@@ -188,7 +149,7 @@ class TrackReading:
     active: bool
 
 
-Sample = AttitudeSample | ImuSample | AirspeedReading | BaroReading | GnssReading | HomeReading | TrackReading
+Sample = AttitudeSample | ImuSample | AirspeedSample | BaroSample | GnssSample | HomeReading | TrackReading
 
 
 @dataclass(frozen=True, slots=True)
@@ -422,7 +383,7 @@ class TelemetryGuard:
         self._ok("imu")
         return ImuSample(t, g, a)
 
-    def airspeed(self, tas_m_s: float) -> AirspeedReading | None:
+    def airspeed(self, tas_m_s: float) -> AirspeedSample | None:
         if not (isinstance(tas_m_s, int | float) and math.isfinite(tas_m_s)):
             self._reject("airspeed", "not finite")
             return None
@@ -430,9 +391,9 @@ class TelemetryGuard:
             self._reject("airspeed", "out of range")
             return None
         self._ok("airspeed")
-        return AirspeedReading(self.clock(), float(tas_m_s))
+        return AirspeedSample(self.clock(), float(tas_m_s))
 
-    def baro(self, pressure_hpa: float, vehicle_us: int) -> BaroReading | None:
+    def baro(self, pressure_hpa: float, vehicle_us: int) -> BaroSample | None:
         if not (isinstance(pressure_hpa, int | float) and math.isfinite(pressure_hpa)) or pressure_hpa <= 0.0:
             self._reject("baro", "not finite or not positive")
             return None
@@ -444,7 +405,7 @@ class TelemetryGuard:
         if t is None:
             return None
         self._ok("baro")
-        return BaroReading(t, alt)
+        return BaroSample(t, alt, pressure_pa=float(pressure_hpa) * 100.0)
 
     def home(self, alt_amsl_m: float, rel_alt_m: float) -> HomeReading | None:
         vals = (alt_amsl_m, rel_alt_m)
@@ -475,7 +436,7 @@ class TelemetryGuard:
             x = y = math.nan
         return TrackReading(self.clock(), x, y, active)
 
-    def gps_raw_int(self, f: dict[str, Any]) -> GnssReading | None:
+    def gps_raw_int(self, f: dict[str, Any]) -> GnssSample | None:
         """GPS_RAW_INT fields (as MAVSDK's MavlinkDirect JSON or pymavlink's ``to_dict``)."""
         try:
             fix = int(f["fix_type"])
@@ -492,8 +453,9 @@ class TelemetryGuard:
         t = self._stamp("gnss", vehicle_us)
         if t is None:
             return None
-        hacc = h_acc / 1000.0 if h_acc else float("nan")
-        pos = vel_ne = None
+        nan = math.nan
+        hacc = h_acc / 1000.0 if h_acc else nan
+        pos = vel_ne = (nan, nan)
         if fix >= 3:
             if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0 and ALT_RANGE_M[0] <= alt <= ALT_RANGE_M[1]):
                 self._reject("gnss", "position out of range")
@@ -502,15 +464,18 @@ class TelemetryGuard:
                 self.ref_lat_lon = (lat, lon)
                 log.info("local NED reference set at the first 3D fix: %.7f, %.7f", lat, lon)
             rl, rn = self.ref_lat_lon
-            pos = np.array([math.radians(lat - rl) * EARTH_RADIUS_M,
-                            math.radians(lon - rn) * EARTH_RADIUS_M * math.cos(math.radians(rl))])
+            pos = (math.radians(lat - rl) * EARTH_RADIUS_M,
+                   math.radians(lon - rn) * EARTH_RADIUS_M * math.cos(math.radians(rl)))
             if vel != 65535 and cog != 65535:
                 speed, course = vel / 100.0, math.radians(cog / 100.0)
-                vel_ne = np.array([speed * math.cos(course), speed * math.sin(course)])
+                vel_ne = (speed * math.cos(course), speed * math.sin(course))
         self._ok("gnss")
-        report = GnssReport(t, fix, sats, hacc, pos, vel_ne)
-        return GnssReading(report, lat, lon, alt, v_acc / 1000.0 if v_acc else float("nan"),
-                           vel_acc / 1000.0 if vel_acc else float("nan"))
+        # the down components are not known here: the companion refers the height to home
+        return GnssSample(t, np.array([pos[0], pos[1], nan]), np.array([vel_ne[0], vel_ne[1], nan]),
+                          fix_ok=fix >= GPS_FIX_TYPE_3D, n_sats=sats, h_acc_m=hacc,
+                          v_acc_m_s=vel_acc / 1000.0 if vel_acc else nan, lat_deg=lat, lon_deg=lon,
+                          alt_msl_m=alt if fix >= GPS_FIX_TYPE_3D else nan,
+                          alt_acc_m=v_acc / 1000.0 if v_acc else nan, fix_type=fix)
 
 
 # ------------------------------------------------------------------------------------------------ the link

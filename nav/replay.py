@@ -91,25 +91,27 @@ import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.integrate import cumulative_trapezoid
 from scipy.spatial.transform import Rotation, Slerp
 
+from common import metrics as M
 from common.angles import angle_diff
-from common.config import ConfigError, build, in_range, require
+from common.config import ConfigError, In, Validated, build, require
 from common.logio import RunLog
 from common.samples import AttitudeSample, GsoeStep, ImuSample, MatchQuality
 from fusion.config import EkfConfig, ekf_config_from_raw
-from fusion.ekf import NavEkf, NavEstimate
+from fusion.ekf import NavEstimate
 from fusion.measurements import OpticalDisplacement
+from gsoe.camera import CameraModel
 from gsoe.config import GsoeConfig
 from gsoe.cycle import base_reference_px
 from nav.logreader import AirspeedSample, AutopilotWind, BaroSample, FlightLog, GnssSample, read_log
 from pipeline.config import load_gsoe_config
-from sim import metrics as M
+from pipeline.navpipeline import NavPipeline, pipeline_config_from_raw
 
 log = logging.getLogger(__name__)
 
@@ -120,6 +122,8 @@ PLOT_DPI = 90
 #: CSV streams (:mod:`common.logio`) a replay writes into its output folder.
 CSV_STREAMS = ("ekf", "aid_status", "gsoe", "gnss", "autopilot_wind")
 
+#: the configuration profile a replay of telemetry runs with (``[pipeline.profiles.telemetry_replay]``)
+REPLAY_PROFILE = "telemetry_replay"
 #: EKF settings a replay puts on top of ``[ekf]`` (see the module docstring, "EKF profile").
 REPLAY_EKF_PROFILE: dict[str, float] = {
     "accel_noise_m_s2_per_rt_hz": 1.0,
@@ -138,7 +142,7 @@ class ReplayError(ValueError):
 
 
 @dataclass(frozen=True)
-class ReplayConfig:
+class ReplayConfig(Validated):
     """Replay settings (``[replay]`` table of the configuration file; every field optional).
 
     ``wind_settle_s``: the wind comparison starts this long after the EKF started (its wind converges first).
@@ -154,30 +158,21 @@ class ReplayConfig:
     pixel noise per axis added to each synthetic step (0: the EKF's optical noise model for that step).
     """
 
-    wind_settle_s: float = 20.0
-    gnss_delay_s: float = 0.2
-    min_span_s: float = 5.0
-    att_max_gap_s: float = 1.0
-    gnss_max_gap_s: float = 1.0
-    on_ground_speed_m_s: float = 3.0
-    lowest_height_agl_m: float = 30.0
-    min_camera_height_m: float = 10.0
-    max_camera_height_m: float = 3000.0
-    optical_sigma_px: float = 0.0
+    wind_settle_s: Annotated[float, In(0.0, 3600.0)] = 20.0
+    gnss_delay_s: Annotated[float, In(0.0, 5.0)] = 0.2
+    min_span_s: Annotated[float, In(0.1, 3600.0)] = 5.0
+    att_max_gap_s: Annotated[float, In(1e-3, 60.0)] = 1.0
+    gnss_max_gap_s: Annotated[float, In(1e-3, 60.0)] = 1.0
+    on_ground_speed_m_s: Annotated[float, In(0.0, 50.0)] = 3.0
+    lowest_height_agl_m: Annotated[float, In(1.0, 10000.0)] = 30.0
+    min_camera_height_m: Annotated[float, In(0.1, 10000.0)] = 10.0
+    max_camera_height_m: Annotated[float, In(1.0, 100000.0)] = 3000.0
+    optical_sigma_px: Annotated[float, In(0.0, 100.0)] = 0.0
 
     def __post_init__(self) -> None:
-        in_range(self.wind_settle_s, 0.0, 3600.0, "wind_settle_s")
-        in_range(self.gnss_delay_s, 0.0, 5.0, "gnss_delay_s")
-        in_range(self.min_span_s, 0.1, 3600.0, "min_span_s")
-        in_range(self.att_max_gap_s, 1e-3, 60.0, "att_max_gap_s")
-        in_range(self.gnss_max_gap_s, 1e-3, 60.0, "gnss_max_gap_s")
-        in_range(self.on_ground_speed_m_s, 0.0, 50.0, "on_ground_speed_m_s")
-        in_range(self.lowest_height_agl_m, 1.0, 10000.0, "lowest_height_agl_m")
-        in_range(self.min_camera_height_m, 0.1, 10000.0, "min_camera_height_m")
-        in_range(self.max_camera_height_m, 1.0, 100000.0, "max_camera_height_m")
+        super().__post_init__()
         require(self.max_camera_height_m > self.min_camera_height_m, "max_camera_height_m",
                 "must be larger than min_camera_height_m")
-        in_range(self.optical_sigma_px, 0.0, 100.0, "optical_sigma_px")
 
 
 def replay_configs_from_raw(raw: Mapping[str, Any]) -> tuple[ReplayConfig, EkfConfig]:
@@ -415,13 +410,6 @@ def _rotation_angle_between(qa: NDArray[np.float64], qb: NDArray[np.float64]) ->
     return 2.0 * math.atan2(math.sqrt(x * x + y * y + z * z), abs(w))
 
 
-def _step_record(s: GsoeStep) -> dict[str, Any]:
-    return {"t_us": s.t_us, "base_t_us": s.base_t_us, "cycle_id": s.cycle_id, "step": s.step, "dx_px": s.dx_px,
-            "dy_px": s.dy_px, "base_yaw_rad": s.base_yaw_rad, "yaw_rad": s.yaw_rad, "gsd_m_px": s.gsd_m_px,
-            "height_agl_m": s.height_agl_m, "focal_px": s.focal_px, "rel_rot_rad": s.rel_rot_rad,
-            "psr": s.quality.psr, "valid": s.valid, "new_cycle": s.new_cycle}
-
-
 # --------------------------------------------------------------------------------------------------------------
 # The replay
 
@@ -556,88 +544,53 @@ def run_replay(log_path: str | Path, *, out_dir: str | Path | None = None, confi
         h_init = float(np.interp(t_init, alt_t, alt_v)) - href.ground_alt_m
     else:
         h_init = rcfg.lowest_height_agl_m
-    terrain_h = height_ref_at_init - h_init if math.isfinite(h_init) else 0.0
+    # The pipeline's NED origin lies at ground level: the log's heights (origin at its first 3-D fix) move down by
+    # the ground's height there, and the baro's ground level is its altitude at the start less the camera height.
+    shift_d_m = height_ref_at_init - h_init if math.isfinite(h_init) else 0.0
+    ground_alt_m = alt_at_init - (h_init if math.isfinite(h_init) else height_ref_at_init)
 
-    vel0 = np.array(init.vel_ned_m_s, dtype=float)
-    if not math.isfinite(vel0[2]):
-        vel0[2] = 0.0
-    ekf = NavEkf(ekf_cfg, t_us=t_init, pos_ned_m=init.pos_ned_m, vel_ned_m_s=vel0, terrain_h_m=terrain_h)
-
-    # every input in time order (ties: the EKF orders same-stamp samples itself)
-    events: list[tuple[int, int, str, Any]] = []
-    for i, s in enumerate(inp.imu):
-        if ok_imu[i] and t_init < s.t_us <= t_imu_end:
-            att = AttitudeSample(t_us=int(s.t_us), roll_rad=float(eul_imu[i, 0]), pitch_rad=float(eul_imu[i, 1]),
-                                 yaw_rad=float(eul_imu[i, 2]))
-            events.append((int(s.t_us), 0, "imu", (s, att)))
-    for g in inp.gnss:
-        if g.t_us > t_init:
-            events.append((int(g.t_us), 1, "gnss", g))
-    if alt_source == "baro":
-        for b in inp.baro:
-            if b.t_us >= t_init:
-                events.append((int(b.t_us), 2, "baro", b.alt_m - baro_offset_m))
-    for a in inp.air:
-        if a.t_us >= t_init:
-            events.append((int(a.t_us), 3, "air", a.tas_m_s))
-    for st in steps:
-        events.append((st.t_us, 4, "optical", st))
-    events.sort(key=lambda e: (e[0], e[1]))
-
-    runlog = None
     if out_dir is not None:
         Path(out_dir).mkdir(parents=True, exist_ok=True)
         for name in CSV_STREAMS:                 # RunLog appends: a rerun into the same folder starts afresh
             (Path(out_dir) / f"{name}.csv").unlink(missing_ok=True)
-        runlog = RunLog(out_dir)
+    runlog = RunLog(out_dir) if out_dir is not None else None
+    pipe = NavPipeline(gsoe_cfg, ekf_cfg, pipeline_config_from_raw(raw, REPLAY_PROFILE),
+                       CameraModel.from_config(gsoe_cfg.camera), sink=_replay_sink(runlog))
+    if alt_source == "baro":
+        pipe.on_ground_level(ground_alt_m)
     rec: dict[str, list[float]] = {k: [] for k in (
         "t_s", "n", "e", "h", "n_sigma", "e_sigma", "wn", "we", "wn_sigma", "we_sigma", "valid")}
-    last_t_rec = -1
 
-    def record(e: NavEstimate) -> None:
-        nonlocal last_t_rec
-        if e.t_us <= last_t_rec:
+    def record(e: NavEstimate | None) -> None:
+        if e is None or (rec["t_s"] and e.t_us / US_PER_S <= rec["t_s"][-1]):
             return
-        last_t_rec = e.t_us
-        for k, v in (("t_s", e.t_us / US_PER_S), ("n", e.pos_ne_m[0]), ("e", e.pos_ne_m[1]), ("h", e.height_m),
-                     ("n_sigma", e.pos_ne_sigma_m[0]), ("e_sigma", e.pos_ne_sigma_m[1]), ("wn", e.wind_ne_m_s[0]),
-                     ("we", e.wind_ne_m_s[1]), ("wn_sigma", e.wind_ne_sigma_m_s[0]),
+        for k, v in (("t_s", e.t_us / US_PER_S), ("n", e.pos_ne_m[0]), ("e", e.pos_ne_m[1]),
+                     ("h", e.height_m + shift_d_m), ("n_sigma", e.pos_ne_sigma_m[0]), ("e_sigma", e.pos_ne_sigma_m[1]),
+                     ("wn", e.wind_ne_m_s[0]), ("we", e.wind_ne_m_s[1]), ("wn_sigma", e.wind_ne_sigma_m_s[0]),
                      ("we_sigma", e.wind_ne_sigma_m_s[1]), ("valid", float(e.valid))):
             rec[k].append(float(v))
-        if runlog is not None:
-            runlog.write("ekf", e.as_record())
-            for status in ekf.status().values():
-                runlog.write("aid_status", status.as_record())
 
+    att0 = atts.at(np.array([t_init], dtype=np.int64))[0]
+    assert att0 is not None
+    r0, p0, y0 = _euler(att0)[0]
     try:
-        record(ekf.estimate())
-        for t, _, kind, payload in events:
+        # the log from the fix the EKF starts at, in time order (ties: the EKF orders same-stamp samples itself)
+        pipe.on_attitude(AttitudeSample(t_us=t_init, roll_rad=float(r0), pitch_rad=float(p0), yaw_rad=float(y0)))
+        for t, kind, payload in _events(inp, steps, ok_imu, eul_imu, t_init, t_imu_end, alt_source == "baro"):
             if kind == "imu":
-                ekf.predict(*payload)
-                record(ekf.estimate())
+                pipe.on_attitude(payload[1])
+                pipe.on_imu(payload[0])
+                record(pipe.estimate())
             elif kind == "gnss":
+                pipe.gnss_enabled = t_off is None or t < t_off
                 g = payload
-                if runlog is not None:
-                    runlog.write("gnss", {"t_us": g.t_us, "pos_n_m": g.pos_ned_m[0], "pos_e_m": g.pos_ned_m[1],
-                                          "pos_d_m": g.pos_ned_m[2], "vel_n_m_s": g.vel_ned_m_s[0],
-                                          "vel_e_m_s": g.vel_ned_m_s[1], "vel_d_m_s": g.vel_ned_m_s[2],
-                                          "fix_ok": g.fix_ok, "n_sats": g.n_sats, "fused": t_off is None or t < t_off})
-                if not g.fix_ok or (t_off is not None and t >= t_off):
-                    continue
-                g_pos = g.pos_ned_m if np.all(np.isfinite(g.pos_ned_m)) else None
-                g_vel: NDArray[np.float64] | None = g.vel_ned_m_s      # 2-D when the down component is unknown
-                if not np.all(np.isfinite(g.vel_ned_m_s)):
-                    g_vel = g.vel_ned_m_s[:2] if np.all(np.isfinite(g.vel_ned_m_s[:2])) else None
-                if g_pos is not None or g_vel is not None:
-                    ekf.fuse_gnss(t, g_pos, g_vel)
+                pipe.on_gnss(dataclasses.replace(g, pos_ned_m=g.pos_ned_m + np.array([0.0, 0.0, shift_d_m])))
             elif kind == "baro":
-                ekf.fuse_baro(t, payload)
+                pipe.on_baro(payload)
             elif kind == "air":
-                ekf.fuse_airspeed(t, payload)
+                pipe.on_airspeed(payload)
             elif kind == "optical":
-                ekf.fuse_optical(payload)
-                if runlog is not None:
-                    runlog.write("gsoe", _step_record(payload))
+                pipe.on_steps([payload])
         if runlog is not None:
             for w in inp.wind:
                 wn, we = w.wind_ned_m_s
@@ -646,6 +599,9 @@ def run_replay(log_path: str | Path, *, out_dir: str | Path | None = None, confi
     finally:
         if runlog is not None:
             runlog.close()
+    if pipe.ekf is None:
+        raise ReplayError(f"{what}: the EKF did not start ({pipe.why_no_estimate()})")
+    ekf = pipe.ekf
 
     series: dict[str, dict[str, NDArray[np.float64]]] = {"ekf": {k: np.array(v) for k, v in rec.items()}}
     series["gnss"] = {"t_s": np.array([g.t_us for g in fixes]) / US_PER_S,
@@ -685,6 +641,37 @@ def run_replay(log_path: str | Path, *, out_dir: str | Path | None = None, confi
     if out_dir is not None:
         write_outputs(Path(out_dir), result, plots=plots)
     return result
+
+
+def _replay_sink(runlog: RunLog | None) -> Any:
+    """The pipeline's log streams a replay keeps (the log's own IMU, attitude and air data are not copied)."""
+    if runlog is None:
+        return None
+    keep = set(CSV_STREAMS)
+
+    def sink(stream: str, record: dict[str, Any]) -> None:
+        if stream in keep:
+            runlog.write(stream, record)
+    return sink
+
+
+def _events(inp: _Inputs, steps: list[GsoeStep], ok_imu: NDArray[np.bool_], eul_imu: NDArray[np.float64],
+            t_init: int, t_imu_end: int, with_baro: bool) -> list[tuple[int, str, Any]]:
+    """The log's samples from the EKF's first fix on, in time order; each IMU sample with the attitude
+    interpolated to its stamp (offline, so the next logged attitude may be used)."""
+    events: list[tuple[int, int, str, Any]] = []
+    for i, s in enumerate(inp.imu):
+        if ok_imu[i] and t_init < s.t_us <= t_imu_end:
+            att = AttitudeSample(t_us=int(s.t_us), roll_rad=float(eul_imu[i, 0]), pitch_rad=float(eul_imu[i, 1]),
+                                 yaw_rad=float(eul_imu[i, 2]))
+            events.append((int(s.t_us), 0, "imu", (s, att)))
+    events += [(int(g.t_us), 1, "gnss", g) for g in inp.gnss if g.t_us >= t_init]
+    if with_baro:
+        events += [(int(b.t_us), 2, "baro", b) for b in inp.baro if b.t_us >= t_init]
+    events += [(int(a.t_us), 3, "air", a) for a in inp.air if a.t_us >= t_init]
+    events += [(st.t_us, 4, "optical", st) for st in steps]
+    events.sort(key=lambda e: (e[0], e[1]))
+    return [(t, kind, payload) for t, _, kind, payload in events]
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -762,7 +749,7 @@ def _dr_metrics(series: dict[str, dict[str, NDArray[np.float64]]], t_off: int | 
 def write_outputs(out_dir: Path, result: ReplayResult, *, plots: bool = True) -> None:
     """``metrics.json`` and, with ``plots``, the figures and ``report.html`` (the CSV streams are written during the
     run)."""
-    from sim.report import write_metrics
+    from common.report import write_metrics
 
     out_dir.mkdir(parents=True, exist_ok=True)
     write_metrics(out_dir, result.metrics)

@@ -21,7 +21,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -29,20 +29,19 @@ from typing import Any
 import cv2
 import numpy as np
 
+from common import metrics as M
 from common.angles import angle_diff
 from common.logio import RunLog
-from common.samples import AttitudeSample, GsoeStep
+from common.samples import GsoeStep
 from fusion.config import ekf_config_from_raw
-from fusion.ekf import NavEkf, NavEstimate
-from gsoe.baseline import PaperBaseline
 from gsoe.camera import CameraModel
-from gsoe.cycle import GsoeEstimator
 from gsoe.rotation import R_nb_from_euler
 from pipeline.config import load_gsoe_config
-from sim import metrics as M
+from pipeline.navpipeline import FrameResult, NavPipeline, pipeline_config_from_raw
 from sim.autopilot import Autopilot, Waypoint
 from sim.dynamics import DynamicsParams, FlightDynamics
 from sim.render import CameraRenderer
+from sim.report import gnss_drift_series
 from sim.scenario import Scenario, gsoe_config_for
 from sim.sensors import SensorSuite
 from sim.textures import GroundWorld
@@ -55,8 +54,6 @@ log = logging.getLogger(__name__)
 SETTLE_S = 60.0
 # Milspec W20 (wind speed at 20 ft) per scenario severity: light 15 kt, moderate 30 kt, severe 45 kt.
 SEVERITY_W20_M_S = {"light": LIGHT_W20_M_S, "moderate": 2.0 * LIGHT_W20_M_S, "severe": 3.0 * LIGHT_W20_M_S}
-# Frames waiting longer than this for attitude samples are dropped (the AHRS stopped).
-MAX_FRAME_WAIT_US = 500_000
 # Wind figures compare with the total wind the aircraft flies in, averaged over this window (the turbulence's
 # long-wavelength part is real wind an estimator should follow; its fast part is not observable).
 WIND_TRUTH_WINDOW_S = 5.0
@@ -124,17 +121,6 @@ def _truth_record(tr: TruthState) -> dict[str, Any]:
     }
 
 
-def _step_record(s: GsoeStep) -> dict[str, Any]:
-    return {
-        "t_us": s.t_us, "base_t_us": s.base_t_us, "cycle_id": s.cycle_id, "step": s.step, "dx_px": s.dx_px,
-        "dy_px": s.dy_px, "base_yaw_rad": s.base_yaw_rad, "yaw_rad": s.yaw_rad, "gsd_m_px": s.gsd_m_px,
-        "height_agl_m": s.height_agl_m, "rel_rot_rad": s.rel_rot_rad, "psr": s.quality.psr,
-        "texture_std": s.quality.texture_std, "ssd_per_px": s.quality.ssd_per_px,
-        "match_sigma_px": s.quality.match_sigma_px, "valid": s.valid,
-        "new_cycle": s.new_cycle,
-    }
-
-
 class _FrameSource:
     """A camera exposure rendered on demand, only the regions the estimator samples (:data:`gsoe.stabilise.Frame`).
 
@@ -188,6 +174,7 @@ def run_flight(scn: Scenario, *, seed: int, duration_s: float | None = None, out
     base_cfg, raw = load_gsoe_config(config_path)
     gcfg = gsoe_config_for(scn, base_cfg)
     ekf_cfg = ekf_config_from_raw(raw.get("ekf", {}))
+    pcfg = pipeline_config_from_raw(raw)
     # The physical camera is the configuration's camera file; the estimator uses the scenario's view of it
     # (``camera.gsoe_overrides.camera``), so a Monte Carlo run can give the estimator a calibration error.
     camera = CameraModel.from_config(gcfg.camera)
@@ -208,63 +195,23 @@ def run_flight(scn: Scenario, *, seed: int, duration_s: float | None = None, out
     ap.set_mission([Waypoint(w.north_m, w.east_m, w.height_m, w.airspeed_m_s) for w in scn.mission.waypoints],
                    loop=scn.mission.loop)
     sensors = SensorSuite(scn.sensors, scn.camera, rng_sens)
-    est = GsoeEstimator(gcfg, camera)
-    baseline = PaperBaseline(gcfg.integrity)
-    ekf: NavEkf | None = None
     runlog = RunLog(out_dir) if out_dir is not None else None
     series = _Series()
     timers = _Timers()
-    pending: deque[tuple[int, np.ndarray, float]] = deque()
-    last_att: AttitudeSample | None = None
-    last_att_t_us = -1
-    last_imu_t_us = -1
-    baro_alt_m = math.nan
+    # the simulated baro is a height above the reference point, which lies at ground level: ground level 0
+    pipe = NavPipeline(gcfg, ekf_cfg, pcfg, camera, sink=runlog.write if runlog is not None else None,
+                       timers=timers.s)
     in_outage: list[tuple[float, float]] = [(o.start_s, o.start_s + o.length_s) for o in scn.sensors.gnss.outages]
     n_steps = int(round(duration / scn.dt_s))
     truth = dyn.truth()
     interrupted = False
     crashed = ""
-    frames = 0
     bar = None
     if progress:
         from tqdm import tqdm
 
         bar = tqdm(total=int(duration), unit="sim s", desc=f"gsoe sim {scn.name}", dynamic_ncols=True)
     last_bar_s = 0
-
-    def _write(stream: str, rec: dict[str, Any]) -> None:
-        if runlog is not None:
-            runlog.write(stream, rec)
-
-    def _process_ready() -> None:
-        nonlocal frames
-        while pending and (pending[0][0] <= min(last_att_t_us, last_imu_t_us)
-                           or min(last_att_t_us, last_imu_t_us) - pending[0][0] > MAX_FRAME_WAIT_US):
-            t_us, image, h_m = pending.popleft()
-            t0 = time.perf_counter()
-            steps = est.process_frame(t_us, image, h_m)
-            t0 = timers.add("gsoe", t0)
-            frames += 1
-            for s in steps:
-                series.steps_valid += int(s.valid and not s.new_cycle)
-                _write("gsoe", _step_record(s))
-                _capture_cycle(s)
-                b = baseline.update(s)
-                if b is not None:
-                    series.baseline["t_s"].append(b.t_us / US_PER_S)
-                    series.baseline["drift"].append(b.drift_rad)
-                    series.baseline["heading"].append(b.heading_rad)
-                    series.baseline["released"].append(float(b.released))
-                    series.baseline["ws"].append(b.wind_speed_m_s)
-                    series.baseline["wd"].append(b.wind_from_rad)
-                    series.baseline["gs"].append(b.ground_speed_m_s)
-                    _write("baseline", {"t_us": b.t_us, "drift_rad": b.drift_rad, "heading_rad": b.heading_rad,
-                                        "ground_speed_m_s": b.ground_speed_m_s, "ata_rad": b.ata_rad,
-                                        "wind_speed_m_s": b.wind_speed_m_s, "wind_from_rad": b.wind_from_rad,
-                                        "released": b.released, "reason": b.reason})
-                if ekf is not None:
-                    ekf.fuse_optical(s)
-            timers.add("ekf", t0)
 
     def _capture_cycle(s: GsoeStep) -> None:
         """Keep one TM cycle (base image and template path) after the settle time for the merged figure."""
@@ -275,8 +222,8 @@ def run_flight(scn: Scenario, *, seed: int, duration_s: float | None = None, out
             if fig is not None and len(fig["path"]) >= 8:
                 fig["done"] = True
                 return
-            if s.t_us / US_PER_S > min(SETTLE_S, 0.25 * duration) and est.cycle_base is not None:
-                series.cycle_figure = {"base": est.cycle_base.copy(), "ref_uv": est.ref_uv, "path": [],
+            if s.t_us / US_PER_S > min(SETTLE_S, 0.25 * duration) and pipe.gsoe.cycle_base is not None:
+                series.cycle_figure = {"base": pipe.gsoe.cycle_base.copy(), "ref_uv": pipe.gsoe.ref_uv, "path": [],
                                        "cycle_id": s.cycle_id, "t_s": s.t_us / US_PER_S}
         elif fig is not None and not fig.get("done") and s.cycle_id == fig["cycle_id"] and s.valid:
             fig["path"].append((s.dx_px, s.dy_px))
@@ -292,70 +239,38 @@ def run_flight(scn: Scenario, *, seed: int, duration_s: float | None = None, out
             truth = dyn.step(cmd)
             t0 = timers.add("dynamics", t0)
             r = sensors.step(truth)
-            t0 = timers.add("sensors", t0)
-            t_s = truth.t_s
+            timers.add("sensors", t0)
             if r.imu is not None:
-                est.push_imu(r.imu)
-                last_imu_t_us = r.imu.t_us
-                if runlog is not None:      # (the record is not even built without a log: the per-step path)
-                    runlog.write("imu", {"t_us": r.imu.t_us, "gyro_x_rad_s": r.imu.gyro_b_rad_s[0],
-                                         "gyro_y_rad_s": r.imu.gyro_b_rad_s[1], "gyro_z_rad_s": r.imu.gyro_b_rad_s[2],
-                                         "accel_x_m_s2": r.imu.accel_b_m_s2[0], "accel_y_m_s2": r.imu.accel_b_m_s2[1],
-                                         "accel_z_m_s2": r.imu.accel_b_m_s2[2]})
+                pipe.on_imu(r.imu)
             if r.ahrs is not None:
-                est.push_attitude(r.ahrs)
-                last_att = r.ahrs
-                last_att_t_us = r.ahrs.t_us
-                if runlog is not None:
-                    runlog.write("attitude", {"t_us": r.ahrs.t_us, "roll_rad": r.ahrs.roll_rad,
-                                              "pitch_rad": r.ahrs.pitch_rad, "yaw_rad": r.ahrs.yaw_rad})
-            t0 = timers.add("gsoe", t0)
-            if ekf is not None and r.imu is not None and last_att is not None:
-                # the attitude the optical frames use too: AHRS latency removed, noise averaged (gsoe.attitude)
-                ekf.predict(r.imu, est.fusion_attitude(r.imu.t_us) or last_att)
+                pipe.on_attitude(r.ahrs)
             if r.airspeed is not None:
-                baseline.set_airspeed(r.airspeed.tas_m_s)
-                if ekf is not None:
-                    ekf.fuse_airspeed(r.airspeed.t_us, r.airspeed.tas_m_s)
-                _write("airspeed", {"t_us": r.airspeed.t_us, "tas_m_s": r.airspeed.tas_m_s})
+                pipe.on_airspeed(r.airspeed)
             if r.baro is not None:
-                baro_alt_m = r.baro.alt_m
-                if ekf is not None:
-                    ekf.fuse_baro(r.baro.t_us, r.baro.alt_m)
-                _write("baro", {"t_us": r.baro.t_us, "alt_m": r.baro.alt_m})
+                pipe.on_baro(r.baro)
             if r.gnss is not None:
                 g = r.gnss
-                if g.fix_ok and ekf is None and last_att is not None:
-                    ekf = NavEkf(ekf_cfg, t_us=g.t_us, pos_ned_m=g.pos_ned_m, vel_ned_m_s=g.vel_ned_m_s)
-                elif ekf is not None:
-                    if g.fix_ok:
-                        ekf.fuse_gnss(g.t_us, g.pos_ned_m, g.vel_ned_m_s, pos_sigma_ne_m=g.h_acc_m,
-                                      vel_sigma_ne_m_s=g.v_acc_m_s)
+                pipe.on_gnss(g)
                 series.gnss["t_s"].append(g.t_us / US_PER_S)
                 series.gnss["n"].append(float(g.pos_ned_m[0]))
                 series.gnss["e"].append(float(g.pos_ned_m[1]))
                 series.gnss["ok"].append(float(g.fix_ok))
-                _write("gnss", {"t_us": g.t_us, "pos_n_m": g.pos_ned_m[0], "pos_e_m": g.pos_ned_m[1],
-                                "pos_d_m": g.pos_ned_m[2], "vel_n_m_s": g.vel_ned_m_s[0],
-                                "vel_e_m_s": g.vel_ned_m_s[1], "vel_d_m_s": g.vel_ned_m_s[2], "fix_ok": g.fix_ok,
-                                "n_sats": g.n_sats})
-            t0 = timers.add("ekf", t0)
             if r.frame is not None:
-                est_now = ekf.estimate() if ekf is not None else None
-                h_m = est_now.height_agl_m if est_now is not None else baro_alt_m
-                t0 = timers.add("ekf", t0)
+                t0 = time.perf_counter()
                 R_nb = R_nb_from_euler(truth.roll_rad, truth.pitch_rad, truth.yaw_rad)
                 source = _FrameSource(renderer, truth, R_nb, r.frame.exposure_s, scn.camera.noise_std,
                                       scn.camera.gain, rng_cam, timers, frame_buf)
-                pending.append((r.frame.t_us, source() if full_frame else source, h_m))
+                image = source() if full_frame else source
                 t0 = timers.add("render", t0)
-                _record_frame(series, truth, ekf, est_now, runlog)
-                t0 = timers.add("log", t0)
-            if pending:
-                _process_ready()
-            if bar is not None and int(t_s) > last_bar_s:
-                bar.update(int(t_s) - last_bar_s)
-                last_bar_s = int(t_s)
+                _record_truth(series, truth, runlog)
+                timers.add("log", t0)
+                pipe.on_frame(r.frame.t_us, image)
+            pipe.poll(truth.t_us)
+            for res in pipe.drain():
+                _record_result(series, res, _capture_cycle)
+            if bar is not None and int(truth.t_s) > last_bar_s:
+                bar.update(int(truth.t_s) - last_bar_s)
+                last_bar_s = int(truth.t_s)
     except KeyboardInterrupt:
         interrupted = True
         log.warning("interrupted at t = %.1f s: the logs written so far are kept", truth.t_s)
@@ -371,14 +286,17 @@ def run_flight(scn: Scenario, *, seed: int, duration_s: float | None = None, out
     wall = time.perf_counter() - wall0
     series.trim()
     out = compute_metrics(series, in_outage)
+    frames = pipe.status.frames
     out.update(
         scenario=scn.name, seed=seed, frames=frames, sim_s=truth.t_s, wall_s=wall,
         realtime_factor=truth.t_s / wall if wall > 0 else math.nan,
         time_split_s={k: round(v, 3) for k, v in timers.s.items()}, interrupted=interrupted, crashed=crashed,
-        optical_valid_frac=series.steps_valid / max(1, frames),   # frames with a valid match
+        optical_valid_frac=pipe.status.steps_valid / max(1, frames),   # frames with a valid match
         gyro_bias_true_deg_s=np.degrees(sensors.imu.gyro_bias_b_rad_s).tolist(),
-        gyro_bias_est_deg_s=np.degrees(est.buffer.gyro_bias_b_rad_s).tolist(),
+        gyro_bias_est_deg_s=np.degrees(pipe.gsoe.buffer.gyro_bias_b_rad_s).tolist(),
         sensor_errors=sensors.errors.to_dict(),
+        pipeline={"ekf_started": pipe.status.ekf_started, "frames_late": pipe.status.frames_late,
+                  "estimator_errors": pipe.status.estimator_errors},
     )
     if out_dir is not None:
         from sim.report import write_report
@@ -387,52 +305,41 @@ def run_flight(scn: Scenario, *, seed: int, duration_s: float | None = None, out
     return out
 
 
-def _record_frame(series: _Series, tr: TruthState, ekf: NavEkf | None, e: NavEstimate | None,
-                  runlog: RunLog | None) -> None:
-    """Record the truth and the EKF's estimate ``e`` (computed once per frame by the caller) of one frame."""
-    T = series.truth
-    T["t_s"].append(tr.t_s)
-    for key, v in zip(("n", "e", "d"), tr.pos_ned_m, strict=True):
-        T[key].append(float(v))
-    for key, v in zip(("vn", "ve", "vd"), tr.vel_ned_m_s, strict=True):
-        T[key].append(float(v))
-    T["roll"].append(tr.roll_rad)
-    T["pitch"].append(tr.pitch_rad)
-    T["yaw"].append(tr.yaw_rad)
-    T["tas"].append(tr.tas_m_s)
-    T["beta"].append(tr.beta_rad)
-    T["wn"].append(float(tr.wind_ned_m_s[0]))
-    T["we"].append(float(tr.wind_ned_m_s[1]))
-    T["wsn"].append(float(tr.wind_steady_ned_m_s[0]))
-    T["wse"].append(float(tr.wind_steady_ned_m_s[1]))
-    T["h"].append(tr.height_agl_m)
-    if runlog is not None:
-        runlog.write("truth", _truth_record(tr))
-    if ekf is None or e is None:
+def _record_result(series: _Series, res: FrameResult, capture_cycle: Callable[[GsoeStep], None]) -> None:
+    """Record what one processed frame gave: the baseline's cycles and the EKF's estimate after the frame."""
+    for s in res.steps:
+        capture_cycle(s)
+    for b in res.baseline:
+        B = series.baseline
+        for key, v in (("t_s", b.t_us / US_PER_S), ("drift", b.drift_rad), ("heading", b.heading_rad),
+                       ("released", float(b.released)), ("ws", b.wind_speed_m_s), ("wd", b.wind_from_rad),
+                       ("gs", b.ground_speed_m_s)):
+            B[key].append(v)
+    e = res.estimate
+    if e is None:
         return
     E = series.ekf
-    E["t_s"].append(e.t_us / US_PER_S)
-    E["drift"].append(e.drift_rad)
-    E["drift_sigma"].append(e.drift_sigma_rad)
-    E["wn"].append(float(e.wind_ne_m_s[0]))
-    E["we"].append(float(e.wind_ne_m_s[1]))
-    E["wn_sigma"].append(float(e.wind_ne_sigma_m_s[0]))
-    E["we_sigma"].append(float(e.wind_ne_sigma_m_s[1]))
-    E["ws"].append(e.wind_speed_m_s)
-    E["wd"].append(e.wind_from_rad)
-    E["n"].append(float(e.pos_ne_m[0]))
-    E["e"].append(float(e.pos_ne_m[1]))
-    E["n_sigma"].append(float(e.pos_ne_sigma_m[0]))
-    E["e_sigma"].append(float(e.pos_ne_sigma_m[1]))
-    E["valid"].append(float(e.valid))
-    E["heading"].append(e.heading_rad)
-    E["vn"].append(float(e.vel_ned_m_s[0]))
-    E["ve"].append(float(e.vel_ned_m_s[1]))
+    for key, v in (("t_s", e.t_us / US_PER_S), ("drift", e.drift_rad), ("drift_sigma", e.drift_sigma_rad),
+                   ("wn", e.wind_ne_m_s[0]), ("we", e.wind_ne_m_s[1]), ("wn_sigma", e.wind_ne_sigma_m_s[0]),
+                   ("we_sigma", e.wind_ne_sigma_m_s[1]), ("ws", e.wind_speed_m_s), ("wd", e.wind_from_rad),
+                   ("n", e.pos_ne_m[0]), ("e", e.pos_ne_m[1]), ("n_sigma", e.pos_ne_sigma_m[0]),
+                   ("e_sigma", e.pos_ne_sigma_m[1]), ("valid", float(e.valid)), ("heading", e.heading_rad),
+                   ("vn", e.vel_ned_m_s[0]), ("ve", e.vel_ned_m_s[1])):
+        E[key].append(float(v))
     series.ekf_cov_pvw.append(e.cov_pvw)
+
+
+def _record_truth(series: _Series, tr: TruthState, runlog: RunLog | None) -> None:
+    """Record the truth at one camera frame."""
+    T = series.truth
+    for key, v in (("t_s", tr.t_s), ("n", tr.pos_ned_m[0]), ("e", tr.pos_ned_m[1]), ("d", tr.pos_ned_m[2]),
+                   ("vn", tr.vel_ned_m_s[0]), ("ve", tr.vel_ned_m_s[1]), ("vd", tr.vel_ned_m_s[2]),
+                   ("roll", tr.roll_rad), ("pitch", tr.pitch_rad), ("yaw", tr.yaw_rad), ("tas", tr.tas_m_s),
+                   ("beta", tr.beta_rad), ("wn", tr.wind_ned_m_s[0]), ("we", tr.wind_ned_m_s[1]),
+                   ("wsn", tr.wind_steady_ned_m_s[0]), ("wse", tr.wind_steady_ned_m_s[1]), ("h", tr.height_agl_m)):
+        T[key].append(float(v))
     if runlog is not None:
-        runlog.write("ekf", e.as_record())
-        for st in ekf.status().values():
-            runlog.write("aid_status", st.as_record())
+        runlog.write("truth", _truth_record(tr))
 
 
 def _nees(E: dict[str, np.ndarray], T: dict[str, np.ndarray], cov_pvw: list[np.ndarray]) -> np.ndarray:
@@ -480,7 +387,7 @@ def compute_metrics(series: _Series, outages: list[tuple[float, float]]) -> dict
         return np.asarray(angle_diff(M.interp_angle(t_q, T["t_s"], true_drift + np.pi), np.pi))
 
     # GNSS drift (paper eq. 18-21): consecutive fixes and the heading at the later one
-    gnss_drift_t, gnss_drift = _gnss_drift(G, T)
+    gnss_drift_t, gnss_drift = gnss_drift_series(G, T)
 
     def block(prefix: str, t_q: np.ndarray, drift: np.ndarray, valid: np.ndarray, heading: np.ndarray,
               ws: np.ndarray, wd: np.ndarray) -> None:
@@ -553,18 +460,6 @@ def compute_metrics(series: _Series, outages: list[tuple[float, float]]) -> dict
                                                                       for v in med]}
         out.update(_outage_metrics(E, T, outages))
     return out
-
-
-def _gnss_drift(G: dict[str, np.ndarray], T: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    ok = G["ok"] > 0.5 if G["t_s"].size else np.zeros(0, bool)
-    if ok.sum() < 2:
-        return np.zeros(0), np.zeros(0)
-    t, n, e = G["t_s"][ok], G["n"][ok], G["e"][ok]
-    from gsoe.equations import gnss_drift_rad
-
-    yaw = M.interp_angle(t[1:], T["t_s"], T["yaw"])
-    d = np.asarray(gnss_drift_rad(n, e, yaw))
-    return t[1:], d
 
 
 def _outage_metrics(E: dict[str, np.ndarray], T: dict[str, np.ndarray], outages: list[tuple[float, float]]

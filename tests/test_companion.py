@@ -56,7 +56,7 @@ def start_pair(tmp_path: Path, duration_s: float, outage: str | None, frames: bo
                            stderr=open(tmp_path / "vehicle.log", "w"))
     time.sleep(1.5)
     camera = f"sim://127.0.0.1:{tcp}" if frames else "/nonexistent/video.avi"
-    comp = subprocess.Popen([PY, "-m", "nav.cli", "companion", "--connect", f"udpin://127.0.0.1:{udp}", "--camera",
+    comp = subprocess.Popen([PY, "-m", "cli", "companion", "--connect", f"udpin://127.0.0.1:{udp}", "--camera",
                              camera, "--log-dir", str(tmp_path / "log"), "--duration-s", str(duration_s)],
                             cwd=ROOT, env=env, stdout=open(tmp_path / "companion.out", "w"),
                             stderr=open(tmp_path / "companion.log", "w"))
@@ -132,14 +132,9 @@ def test_fuzz_10k_frames_and_telemetry_samples_never_crash_nor_send_invalid_valu
     time backwards or far ahead, malformed GNSS and tracker reports) mixed into it: no exception, every estimate
     that passes the link's gate encodes to finite in-range MAVLink values (checked by the vehicle's own validator),
     and after the fuzz the estimate is valid again."""
-    from nav.companion import Estimator, companion_config_from_raw
-    from nav.gnss_monitor import GnssMonitor, GnssState
+    from nav.companion import CompanionEstimator, companion_config_from_raw
     from nav.guidance import TargetGuidance, change_heading_command_fields, forward_camera
     from nav.link import (
-        AirspeedReading,
-        BaroReading,
-        GnssReading,
-        HomeReading,
         TelemetryGuard,
         TrackReading,
         check_estimate,
@@ -155,8 +150,7 @@ def test_fuzz_10k_frames_and_telemetry_samples_never_crash_nor_send_invalid_valu
     cfg = companion_config_from_raw(raw)
     now = [0]
     guard = TelemetryGuard(cfg.link, clock=lambda: now[0])
-    est = Estimator(gsoe_config, camera, raw, cfg, clock=lambda: now[0])
-    monitor = GnssMonitor(cfg.gnss)
+    est = CompanionEstimator(gsoe_config, camera, raw, cfg)
     fwd = forward_camera(camera, math.radians(10.0))
     tracker = ExternalTracker(fwd.size_px, 0.5)
     guidance = TargetGuidance(fwd, cfg.guidance)
@@ -173,22 +167,10 @@ def test_fuzz_10k_frames_and_telemetry_samples_never_crash_nor_send_invalid_valu
     def feed(s) -> None:
         if s is None:
             return
-        if isinstance(s, GnssReading):
-            monitor.update(s.report, est.consistency())
-            if monitor.state == GnssState.GNSS_OK:
-                est.gnss(s)
-        elif isinstance(s, AirspeedReading):
-            est.airspeed(s)
-        elif isinstance(s, BaroReading):
-            est.baro(s)
-        elif isinstance(s, HomeReading):
-            est.home(s)
-        elif isinstance(s, TrackReading):
+        if isinstance(s, TrackReading):
             tracker.push(s.t_us, s.x_norm, s.y_norm, s.active)
-        elif hasattr(s, "roll_rad"):
-            est.attitude(s)
         else:
-            est.imu(s)
+            est.feed(s)
 
     def random_telemetry(t_us: int) -> None:
         k = int(rng.integers(8))
@@ -221,7 +203,7 @@ def test_fuzz_10k_frames_and_telemetry_samples_never_crash_nor_send_invalid_valu
             feed(guard.tracking({"point_x": None}))
 
     def check_outputs() -> None:
-        out = est.output(monitor.state)
+        out = est.output(now[0])
         for name, v in status_values(out, False).items():
             assert received_problems({"mavpackettype": "NAMED_VALUE_FLOAT", "name": name, "value": v}) == []
         if check_estimate(out, cfg.link):
@@ -235,7 +217,7 @@ def test_fuzz_10k_frames_and_telemetry_samples_never_crash_nor_send_invalid_valu
         if att is None or not guidance.due(t_us):
             return
         res = tracker.update(t_us)
-        out = est.output(monitor.state)
+        out = est.output(now[0])
         _, cmd = guidance.step(t_us, res.xy_px if res.valid else None, att.roll_rad, att.pitch_rad, att.yaw_rad,
                                out.height_agl_m, out.drift_rad, out.drift_sigma_rad, out.valid)
         if cmd.valid:
@@ -294,13 +276,13 @@ def test_fuzz_10k_frames_and_telemetry_samples_never_crash_nor_send_invalid_valu
         t_frame = r.frame.t_us + CLOCK_OFFSET_US + int(rng.choice([0, 0, 0, -10**6, 10**6])) if fuzzing else \
             r.frame.t_us + CLOCK_OFFSET_US
         if gray is not None:
-            est.frame(t_frame, gray)
-        est.refresh()
+            est.pipe.on_frame(t_frame, gray)
+        est.tick(now[0])
         check_outputs()
     assert n_fuzz_frames == FUZZ_FRAMES and n_fuzz_tel == FUZZ_TELEMETRY
     assert sum(guard.rejected.values()) > 1000  # the guard refused the impossible values ...
     assert checked["sent"] > 300 and checked["withheld"] > 100  # ... and both branches of the gate were exercised
-    final = est.output(monitor.state)
+    final = est.output(now[0])
     assert check_estimate(final, cfg.link) == "", final.reason  # valid again after the fuzz
     assert est.quality > 0.8
 
@@ -308,20 +290,20 @@ def test_fuzz_10k_frames_and_telemetry_samples_never_crash_nor_send_invalid_valu
 def test_optical_quality_falls_to_zero_over_featureless_ground(gsoe_config, camera):
     """Over textured ground the matches are valid; over flat ground no cycle runs, and the quality the ground
     station sees falls to 0 instead of keeping the last textured value."""
-    from nav.companion import Estimator, companion_config_from_raw
+    from nav.companion import CompanionEstimator, companion_config_from_raw
     from pipeline.config import load_gsoe_config
     from tests.still_camera import still_frames
 
     raw = load_gsoe_config()[1]
-    est = Estimator(gsoe_config, camera, raw, companion_config_from_raw(raw), clock=lambda: 0)
+    est = CompanionEstimator(gsoe_config, camera, raw, companion_config_from_raw(raw))
     w, h = camera.size_px
     textured = np.random.default_rng(5).integers(0, 256, (h, w), dtype=np.uint8)
     flat = np.full((h, w), 90, np.uint8)
     for k, t_us, samples in still_frames(90):   # level and still: the same textured view, a perfect match
         for att, imu in samples:
-            est.attitude(att)
-            est.imu(imu)
-        est.frame(t_us, textured if k < 45 else flat)
+            est.feed(att)
+            est.feed(imu)
+        est.pipe.on_frame(t_us, textured if k < 45 else flat)
         if k == 44:
             assert est.quality > 0.9
-    assert est.gsoe.featureless and est.quality == 0.0
+    assert est.pipe.gsoe.featureless and est.quality == 0.0

@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 
 from common.config import ConfigError, build
+from common.samples import GnssSample
 from nav.gnss_monitor import (
     STATUSTEXT_MAX_CHARS,
     Consistency,
     GnssMonitor,
     GnssMonitorConfig,
-    GnssReport,
     GnssState,
 )
 
@@ -19,11 +19,11 @@ CFG = GnssMonitorConfig()
 DT_US = 200_000  # 5 Hz receiver
 
 
-def good(t_us: int, **kw) -> GnssReport:
-    args = dict(fix_type=3, satellites=12, hacc_m=1.5, pos_ne_m=np.array([100.0, 50.0]),
-                vel_ne_m_s=np.array([20.0, 0.0]))
-    args.update(kw)
-    return GnssReport(t_us, **args)  # type: ignore[arg-type]
+def good(t_us: int, fix_type: int = 3, satellites: int = 12, hacc_m: float = 1.5,
+         pos_ne_m: tuple[float, float] = (100.0, 50.0), vel_ne_m_s: tuple[float, float] = (20.0, 0.0)) -> GnssSample:
+    """A receiver's fix as the link gives it (down components unknown)."""
+    return GnssSample(t_us, np.array([*pos_ne_m, np.nan]), np.array([*vel_ne_m_s, np.nan]), fix_ok=fix_type >= 3,
+                      n_sats=satellites, h_acc_m=hacc_m, fix_type=fix_type)
 
 
 def run(mon: GnssMonitor, reports, expect=None):

@@ -11,13 +11,10 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from common.samples import AttitudeSample, ImuSample
+from common.samples import AirspeedSample, AttitudeSample, BaroSample, GnssSample, ImuSample
 from nav.guidance import GuidanceConfig, HeadingCommand, change_heading_command_fields
 from nav.link import (
-    AirspeedReading,
-    BaroReading,
     CompanionLink,
-    GnssReading,
     LinkConfig,
     OutputEstimate,
     check_estimate,
@@ -100,7 +97,7 @@ def test_telemetry_arrives_as_validated_samples(pair):
     veh, link, _ = pair
     samples = drain(link, 1.5)
     kinds = {type(s) for s in samples}
-    assert {AttitudeSample, ImuSample, AirspeedReading, BaroReading, GnssReading} <= kinds
+    assert {AttitudeSample, ImuSample, AirspeedSample, BaroSample, GnssSample} <= kinds
     att = [s for s in samples if isinstance(s, AttitudeSample)]
     assert len(att) > 30  # 50 Hz stream
     assert all(np.diff([a.t_us for a in att]) > 0)
@@ -108,12 +105,12 @@ def test_telemetry_arrives_as_validated_samples(pair):
     assert math.cos(att[-1].yaw_rad - yaw_truth) > math.cos(math.radians(3.0))
     imu = [s for s in samples if isinstance(s, ImuSample)][-1]
     assert imu.accel_b_m_s2[2] == pytest.approx(-9.81, abs=0.3)  # SCALED_IMU mG converted to m/s^2
-    tas = [s for s in samples if isinstance(s, AirspeedReading)][-1]
+    tas = [s for s in samples if isinstance(s, AirspeedSample)][-1]
     assert tas.tas_m_s == pytest.approx(20.0, abs=0.01)
-    gnss = [s for s in samples if isinstance(s, GnssReading)][-1]
-    assert gnss.report.fix_type == 3 and gnss.report.vel_ne_m_s is not None
+    gnss = [s for s in samples if isinstance(s, GnssSample)][-1]
+    assert gnss.fix_type == 3 and np.all(np.isfinite(gnss.vel_ned_m_s[:2]))
     truth_v = veh.vehicle.truth.vel_ned_m_s[:2]
-    np.testing.assert_allclose(gnss.report.vel_ne_m_s, truth_v, atol=0.6)
+    np.testing.assert_allclose(gnss.vel_ned_m_s[:2], truth_v, atol=0.6)
 
 
 def test_valid_outputs_reach_the_vehicle(pair):
