@@ -20,7 +20,7 @@ test: $(STAMP)
 	$(VENV)/bin/python -m pytest -q
 
 lint: $(STAMP)
-	$(VENV)/bin/ruff check common gsoe fusion pipeline nav sim tests
+	$(VENV)/bin/ruff check common gsoe fusion pipeline nav sim cli tests
 	$(VENV)/bin/mypy common gsoe fusion pipeline
 
 bench: $(STAMP)

@@ -1,7 +1,7 @@
 """Camera calibration from chessboard views (paper 2.1): corners, intrinsics, distortion, fields of view.
 
 Pure: takes images and corner arrays, returns a :class:`gsoe.config.CameraConfig`; reading image files and
-writing the camera file is :mod:`nav.cmd_calibrate`'s business.  The numerical work is OpenCV's
+writing the camera file is :mod:`cli.cmd_calibrate`'s business.  The numerical work is OpenCV's
 (``cv2.findChessboardCorners`` + ``cv2.cornerSubPix``, falling back to ``cv2.findChessboardCornersSB``;
 ``cv2.fisheye.calibrate`` for the Kannala-Brandt fisheye model, ``cv2.calibrateCamera`` for the pinhole
 radial-tangential model; ``cv2.fisheye.solvePnP`` / ``cv2.solvePnP`` for boards left out of the calibration).

@@ -8,7 +8,8 @@ Frames as in :mod:`gsoe`: rays are in the raw camera frame ``c``; ``R_bc`` rotat
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -117,3 +118,17 @@ class CameraModel:
         xy = norm.reshape(-1, 2)
         rays = np.column_stack([xy, np.ones(len(xy))])
         return rays / np.linalg.norm(rays, axis=1, keepdims=True)
+
+
+def forward_camera(camera: CameraModel, depression_rad: float) -> CameraModel:
+    """The same lens mounted looking forward, its optical axis ``depression_rad`` below the body x axis (the
+    tracking camera of the video-tracking guidance and of the simulator's tracker hook).
+
+    Camera axes in the body frame: x_c = right wing, z_c = forward tilted down, y_c = z_c x x_c (image down).
+    """
+    cd, sd = math.cos(depression_rad), math.sin(depression_rad)
+    z_c = np.array([cd, 0.0, sd])
+    x_c = np.array([0.0, 1.0, 0.0])
+    y_c = np.cross(z_c, x_c)
+    R_bc = np.column_stack([x_c, y_c, z_c])
+    return replace(camera, R_bc=R_bc)

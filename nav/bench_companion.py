@@ -84,7 +84,7 @@ def _stop(p: subprocess.Popen[bytes], timeout_s: float = STOP_GRACE_S) -> None:
 def sil_flight(out_dir: Path, *, duration_s: float, vehicle_args: Sequence[str] = (),
                companion_settings: Sequence[str] = (), frames: bool = True, stop_after_pass: bool = False,
                cpu: tuple[int | None, int | None] = (None, None)) -> SilFlight:
-    """Run the vehicle (``python -m sim.mavlink_vehicle``) and the companion (``python -m nav.cli companion``) as two
+    """Run the vehicle (``python -m sim.mavlink_vehicle``) and the companion (``python -m cli companion``) as two
     processes on random free ports of 127.0.0.1 (MAVLink: companion ``udpin``, vehicle ``udpout``; frames: TCP)
     for at most ``duration_s`` of vehicle time; returns both sides' results.  ``cpu`` pins (vehicle, companion) to
     one core each when given."""
@@ -97,7 +97,7 @@ def sil_flight(out_dir: Path, *, duration_s: float, vehicle_args: Sequence[str] 
         veh_cmd += ["--frame-port", str(tcp)]
     if stop_after_pass:
         veh_cmd += ["--stop-after-pass"]
-    comp_cmd = [PY, "-m", "nav.cli", "companion", "--connect", f"udpin://127.0.0.1:{udp}", "--camera",
+    comp_cmd = [PY, "-m", "cli", "companion", "--connect", f"udpin://127.0.0.1:{udp}", "--camera",
                 f"sim://127.0.0.1:{tcp}" if frames else "/nonexistent/video.avi", "--log-dir", str(out_dir / "log")]
     for s in companion_settings:
         comp_cmd += ["--set", s]
@@ -161,8 +161,8 @@ def guidance_figure(out_dir: Path, start_m: float = 2300.0, outage_range_m: floa
 
 def perf(seconds: float, frame_hz: float, outage_after_s: float, config: str | None) -> dict[str, Any]:
     """Run the companion in this process on one core against the vehicle on another; the figures."""
+    from common.configfile import apply_overrides, parse_override
     from common.logio import read_log
-    from nav.cmd_companion import _setting, apply_settings
     from nav.companion import Companion
     from pipeline.config import load_gsoe_config
 
@@ -179,7 +179,7 @@ def perf(seconds: float, frame_hz: float, outage_after_s: float, config: str | N
     try:
         time.sleep(VEHICLE_START_S)
         gsoe_cfg, raw = load_gsoe_config(config)
-        raw = apply_settings(raw, [_setting("companion.status_s=3600.0")])
+        raw = apply_overrides(raw, [parse_override("companion.status_s=3600.0")])
         with tempfile.TemporaryDirectory() as tmp:
             app = Companion(f"udpin://127.0.0.1:{udp}", f"sim://127.0.0.1:{tcp}", gsoe_cfg, raw, tmp)
             timer = threading.Timer(seconds + 20.0, app.request_stop)

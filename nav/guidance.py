@@ -5,11 +5,12 @@ Pure geometry (no I/O).  Frames and names as in :mod:`gsoe`.
 Pipeline
 --------
 1. :func:`locate_target`: the tracker's pixel in the raw image of a calibrated camera (:class:`gsoe.camera.CameraModel`,
-   whose ``R_bc`` may be the belly fisheye or a forward-looking tracking camera, see :func:`forward_camera`) is
-   unprojected to a unit ray, rotated to NED with the AHRS attitude and intersected with flat ground
-   ``height_agl_m`` below the aircraft.  The result is the target's horizontal offset from the aircraft
-   (``rel_ne_m``), its bearing (clockwise from north) and ground range.  Rays that do not point below the horizon
-   by at least ``min_depression_deg`` are invalid: their ground intersection is far away and ill-conditioned.
+   whose ``R_bc`` may be the belly fisheye or a forward-looking tracking camera, see
+   :func:`gsoe.camera.forward_camera`) is unprojected to a unit ray, rotated to NED with the AHRS attitude and
+   intersected with flat ground ``height_agl_m`` below the aircraft.  The result is the target's horizontal offset
+   from the aircraft (``rel_ne_m``), its bearing (clockwise from north) and ground range.  Rays that do not point
+   below the horizon by at least ``min_depression_deg`` are invalid: their ground intersection is far away and
+   ill-conditioned.
 2. :func:`heading_command`: the desired course over ground is the bearing to the target (pure pursuit of the ground
    track).  With the drift angle ``drift_rad`` (positive when the ground track lies clockwise of the heading, so
    ``course = heading + drift``) the heading that flies that course is ``heading = course - drift``.  Without a
@@ -34,7 +35,7 @@ The command is idempotent, so it is re-sent at the guidance rate; a lost packet 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -42,6 +43,7 @@ from numpy.typing import NDArray
 from common.angles import angle_diff, wrap_2pi
 from common.config import in_range
 from gsoe.camera import CameraModel
+from gsoe.camera import forward_camera as forward_camera  # re-exported: the tracking camera
 from gsoe.rotation import R_nb_from_euler
 
 # MAVLink constants (common.xml / ardupilotmega.xml); named here so nav/ code reads without magic numbers.
@@ -128,19 +130,6 @@ class HeadingCommand:
 def _invalid_fix(t_us: int, reason: str) -> TargetFix:
     nan = float("nan")
     return TargetFix(t_us, np.full(2, nan), nan, nan, nan, False, reason)
-
-
-def forward_camera(camera: CameraModel, depression_rad: float) -> CameraModel:
-    """The same lens mounted looking forward, its optical axis ``depression_rad`` below the body x axis.
-
-    Camera axes in the body frame: x_c = right wing, z_c = forward tilted down, y_c = z_c x x_c (image down).
-    """
-    cd, sd = math.cos(depression_rad), math.sin(depression_rad)
-    z_c = np.array([cd, 0.0, sd])
-    x_c = np.array([0.0, 1.0, 0.0])
-    y_c = np.cross(z_c, x_c)
-    R_bc = np.column_stack([x_c, y_c, z_c])
-    return replace(camera, R_bc=R_bc)
 
 
 def locate_target(

@@ -39,14 +39,14 @@ Commands
 Camera frames (belly camera, rendered by :class:`sim.render.CameraRenderer` over :data:`DEFAULT_TEXTURE` or the
 given ``texture``, only the region around the nadir the optical estimator samples; the rest of the frame is black)
 are streamed over TCP on 127.0.0.1 to one client at a time, ``frame_latency_s`` after their exposure (a camera
-pipeline's delay), each as a 24-byte little-endian header ``<4sqIIi``: magic ``b"GSOF"``, exposure time ``t_us``
-(int64, vehicle clock), width, height, channels (1 gray, 3 BGR), followed by ``width * height * channels`` bytes
-(uint8, row-major).  A slow client drops frames rather than stalling the vehicle.
+pipeline's delay), in the frame-stream format of :mod:`common.framestream` (a 24-byte header: magic, exposure
+time ``t_us`` on the vehicle clock, width, height, channels; then the uint8 image).  A slow client drops frames
+rather than stalling the vehicle.
 
 Tracking-camera hook (documented test hook, used by the SIL guidance tests)
     With ``target_ned_m`` set, the vehicle plays an external video tracker: the target's true position is
     projected into a *forward tracking camera* (the configured camera's lens mounted looking forward,
-    ``tracking_depression_deg`` below the body x axis: :func:`nav.guidance.forward_camera`) at the true attitude,
+    ``tracking_depression_deg`` below the body x axis: :func:`gsoe.camera.forward_camera`) at the true attitude,
     seeded pixel noise of ``tracker_noise_px`` is added, and the result is sent as MAVLink
     ``CAMERA_TRACKING_IMAGE_STATUS`` (tracking status ACTIVE, mode POINT, ``point_x``/``point_y`` normalised 0..1:
     ``x = (column + 0.5) / width``) at ``TRACK`` rate; when the target is outside that camera's image the status
@@ -81,7 +81,6 @@ import math
 import os
 import signal
 import socket
-import struct
 import time
 from collections import deque
 from collections.abc import Callable
@@ -92,6 +91,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from common.angles import angle_diff, wrap_2pi, wrap_360, wrap_pi
+from common.framestream import encode_frame
 from common.samples import AirspeedSample, AttitudeSample, BaroSample, GnssSample, ImuSample
 from sim.sensors import CameraFrame, SensorReadings
 from sim.truth import TruthState
@@ -113,8 +113,6 @@ MAV_RESULT_ACCEPTED = 0
 MAV_RESULT_DENIED = 2
 MAV_RESULT_UNSUPPORTED = 3
 MAV_RESULT_FAILED = 4
-FRAME_MAGIC = b"GSOF"
-FRAME_HEADER = struct.Struct("<4sqIIi")
 UINT16_UNKNOWN = 65535
 # Ground texture of the SIL flights: textured along any track (about 98 % valid matches at 100 m AGL); the paper_sil
 # scenario's "mosaic" has long low-texture stretches where the optical estimate rightly goes invalid.
@@ -595,9 +593,7 @@ class FrameServer:
             self._drop()
 
     def send(self, t_us: int, image: NDArray[np.uint8]) -> None:
-        h, w = image.shape[:2]
-        ch = 1 if image.ndim == 2 else image.shape[2]
-        self.send_bytes(FRAME_HEADER.pack(FRAME_MAGIC, t_us, w, h, ch) + np.ascontiguousarray(image).tobytes())
+        self.send_bytes(encode_frame(t_us, image))
 
     def close(self) -> None:
         self.stop_listening()
@@ -656,8 +652,7 @@ class MavlinkVehicle:
                                       rng_cam, cfg.config_path)
         self.tracking_camera: Any = None
         if cfg.target_ned_m is not None:
-            from gsoe.camera import CameraModel
-            from nav.guidance import forward_camera
+            from gsoe.camera import CameraModel, forward_camera
             from pipeline.config import load_gsoe_config
 
             cam = CameraModel.from_config(load_gsoe_config(cfg.config_path)[0].camera)

@@ -3,14 +3,14 @@
 from __future__ import annotations
 
 import html
-import json
-import math
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from sim import metrics as M
+from common import metrics as M
+from common.report import PAGE_CSS, REPORT_FILE, figures_html, metrics_rows_html, write_metrics
+from gsoe.equations import gnss_drift_rad
 
 if TYPE_CHECKING:
     from sim.run import _Series
@@ -19,21 +19,16 @@ if TYPE_CHECKING:
 PLOT_DPI = 90
 
 
-def _json_default(o: Any) -> Any:
-    if isinstance(o, np.integer | np.floating):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    return str(o)
-
-
-def write_metrics(out_dir: Path, metrics: dict[str, Any]) -> Path:
-    p = Path(out_dir) / "metrics.json"
-    tmp = p.with_suffix(".json.tmp")
-    clean = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in metrics.items()}
-    tmp.write_text(json.dumps(clean, indent=2, sort_keys=True, default=_json_default))
-    tmp.replace(p)
-    return p
+def gnss_drift_series(G: dict[str, np.ndarray], T: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """The GNSS drift of a flight record (paper eq. 18-21): consecutive good fixes of ``G`` and the true heading of
+    ``T`` at the later one; (times in s, drift in rad), empty with fewer than two good fixes."""
+    ok = G["ok"] > 0.5 if G["t_s"].size else np.zeros(0, bool)
+    if ok.sum() < 2:
+        return np.zeros(0), np.zeros(0)
+    t, n, e = G["t_s"][ok], G["n"][ok], G["e"][ok]
+    yaw = M.interp_angle(t[1:], T["t_s"], T["yaw"])
+    d = np.asarray(gnss_drift_rad(n, e, yaw))
+    return t[1:], d
 
 
 def write_report(out_dir: Path, scn: Scenario, series: _Series, metrics: dict[str, Any]) -> None:
@@ -110,9 +105,7 @@ def write_report(out_dir: Path, scn: Scenario, series: _Series, metrics: dict[st
     c, m = M.median_per_heading_deg(T["yaw"], true_drift)
     ax.plot(c, m, "k.", ms=3, label="truth")
     if G["t_s"].size and (G["ok"] > 0.5).sum() > 2:
-        from sim.run import _gnss_drift
-
-        tg, dg = _gnss_drift(G, T)
+        tg, dg = gnss_drift_series(G, T)
         c, m = M.median_per_heading_deg(M.interp_angle(tg, T["t_s"], T["yaw"]), dg)
         ax.plot(c, m, ".", color="0.6", ms=3, label="GNSS (eq. 18-21)")
     if B["t_s"].size:
@@ -164,19 +157,9 @@ def _focal(metrics: dict[str, Any]) -> float:
 
 
 def _write_html(out_dir: Path, scn: Scenario, metrics: dict[str, Any], figs: list[tuple[str, str]]) -> None:
-    rows = "".join(
-        f"<tr><td>{html.escape(k)}</td><td>{html.escape(_fmt(v))}</td></tr>" for k, v in sorted(metrics.items()))
-    imgs = "".join(f'<figure><img src="{n}" alt="{html.escape(c)}"><figcaption>{html.escape(c)}</figcaption>'
-                   f"</figure>" for n, c in figs)
     page = (f"<!doctype html><html><head><meta charset='utf-8'><title>gsoe sim {html.escape(scn.name)}</title>"
-            "<style>body{font-family:sans-serif;max-width:1000px;margin:auto}td{padding:2px 8px}"
-            "img{max-width:100%}</style></head><body>"
+            f"<style>{PAGE_CSS}</style></head><body>"
             f"<h1>Simulated flight: {html.escape(scn.name)}</h1><p>{html.escape(scn.description)}</p>"
-            f"<h2>Metrics</h2><table>{rows}</table><h2>Figures</h2>{imgs}</body></html>")
-    (out_dir / "report.html").write_text(page)
-
-
-def _fmt(v: Any) -> str:
-    if isinstance(v, float):
-        return "nan" if not math.isfinite(v) else f"{v:.4g}"
-    return str(v)
+            f"<h2>Metrics</h2><table>{metrics_rows_html(metrics)}</table><h2>Figures</h2>{figures_html(figs)}"
+            "</body></html>")
+    (out_dir / REPORT_FILE).write_text(page)

@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
+from cli.main import main
 from gsoe.calibration import (
     MIN_BOARDS,
     CalibrationError,
@@ -20,7 +21,6 @@ from gsoe.calibration import (
 )
 from gsoe.camera import CameraModel
 from gsoe.config import CameraConfig
-from nav.cli import main
 from pipeline.config import load_camera
 
 CALIB_DIR = Path(__file__).resolve().parent / "data" / "fisheye_calib"

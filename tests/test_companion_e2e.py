@@ -1,7 +1,7 @@
 """SIL over MAVLink end to end: the vehicle simulator and the companion as separate processes, MAVSDK in between.
 
 The vehicle (``python -m sim.mavlink_vehicle``: JSBSim, the paper_sil sensor models, rendered belly-camera frames,
-the tracking-camera hook for the target) and the companion (``python -m nav.cli companion``: the real optical
+the tracking-camera hook for the target) and the companion (``python -m cli companion``: the real optical
 estimator, EKF, GNSS monitor, guidance) talk over random free ports of 127.0.0.1.  GNSS is lost when the aircraft
 comes within a set range of the target.  Everything checked comes from the vehicle's side (what reached it, its
 truth) or the companion's log.

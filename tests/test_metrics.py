@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sim.metrics import (
+from common.metrics import (
     heading_coverage,
     interp_angle,
     median_per_heading_deg,

@@ -20,7 +20,9 @@ import pytest
 from scipy import stats as sps
 
 from common.config import ConfigError
-from nav.montecarlo import (
+from common.metrics import nees_bounds
+from sim.mc_report import write_report
+from sim.montecarlo import (
     DEFAULT_GOALS,
     RunRecord,
     _diff,
@@ -41,7 +43,6 @@ from nav.montecarlo import (
     scenario_for_run,
     write_run_scenario,
 )
-from sim.metrics import nees_bounds
 from sim.scenario import TEXTURES, Scenario, load_scenario
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -258,6 +259,7 @@ min_wind_m_s = 3.0
     assert [g.name for g in spec.goals] == ["coverage_mean", "drift_median", "wind_dir"]
     out = tmp_path / "camp"
     run_campaign(spec, out, workers=0, progress=False)
+    write_report(out)
     recs = read_records(out)
     summary = json.loads((out / "summary.json").read_text())
     assert [r.index for r in recs] == list(range(40)) and summary["campaign"]["n_failed"] == 0
@@ -310,7 +312,7 @@ def test_failures_are_recorded_without_stopping_the_campaign(tmp_path: Path) -> 
     spec = load_spec(write_spec(tmp_path / "s.toml", runner=FAKE_RUNNER, n_runs=5,
                                 extra="fail_runs = [1]\ncrash_runs = [3]"))
     out = tmp_path / "camp"
-    res = run_campaign(spec, out, workers=2, progress=False, report=False)
+    res = run_campaign(spec, out, workers=2, progress=False)
     assert res.failed == [1, 3] and res.flown == [0, 1, 2, 3, 4]
     recs = {r.index: r for r in read_records(out)}
     assert recs[1].status == "failed" and "InjectedFailure" in recs[1].error
@@ -338,17 +340,18 @@ def campaigns(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
                                 n_runs=4, duration_s=CAMPAIGN_FLIGHT_S, extra="fail_runs = [2]"))
     local = tmp / "local"
     # An interrupted campaign: only runs 0 and 3 were flown ...
-    first = run_campaign(spec, local, indices=[0, 3], workers=2, progress=False, report=False)
+    first = run_campaign(spec, local, indices=[0, 3], workers=2, progress=False)
     stamps = {i: run_path(local, i).stat().st_mtime_ns for i in (0, 3)}
     texts = {i: run_path(local, i).read_text() for i in (0, 3)}
     # ... then resumed: the rest is flown, the finished runs are not.
     resumed = run_campaign(spec, local, workers=2, resume=True, progress=False)
+    write_report(local)
     from distributed import LocalCluster
 
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
                       dashboard_address=None) as cluster:
         dask = run_campaign(spec, tmp / "dask", indices=[0, 1, 2], scheduler=cluster.scheduler_address,
-                            progress=False, report=False)
+                            progress=False)
     return {"spec": spec, "local": local, "dask_dir": tmp / "dask", "first": first, "resumed": resumed,
             "dask": dask, "stamps": stamps, "texts": texts, "kind": kind}
 
@@ -394,7 +397,7 @@ def test_injected_failure_is_recorded_on_both_backends(campaigns: Mapping[str, A
 
 def test_refly_one_run_reproduces_it_bit_for_bit(campaigns: Mapping[str, Any], capsys: pytest.CaptureFixture
                                                  ) -> None:
-    from nav.cli import main
+    from cli.main import main
 
     c = campaigns
     assert load_campaign_spec(c["local"]) == c["spec"]
@@ -431,8 +434,8 @@ def test_code_fingerprint_follows_the_files_and_a_refly_names_other_code(campaig
     moves when one byte of one of them does), and a re-flight of a record flown by other code says so."""
     import hashlib
 
-    from nav import montecarlo as mc
-    from nav.cli import main
+    from cli.main import main
+    from sim import montecarlo as mc
 
     root = Path(mc.__file__).resolve().parent.parent
     files = sorted(f for pkg in mc.CODE_PACKAGES for f in (root / pkg).rglob("*")
@@ -465,7 +468,7 @@ def test_code_fingerprint_follows_the_files_and_a_refly_names_other_code(campaig
 
 def test_gsoe_sim_command_of_the_report_reflies_the_run(campaigns: Mapping[str, Any],
                                                          capsys: pytest.CaptureFixture) -> None:
-    from nav.cli import main
+    from cli.main import main
 
     c = campaigns
     if c["kind"] != "real":
@@ -486,7 +489,7 @@ def test_gsoe_sim_command_of_the_report_reflies_the_run(campaigns: Mapping[str, 
 
 
 def test_cli_campaign_resume_guard_and_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    from nav.cli import main
+    from cli.main import main
 
     spec = write_spec(tmp_path / "s.toml", runner=FAKE_RUNNER, n_runs=3, extra="fail_runs = [1]")
     out = tmp_path / "camp"
@@ -523,6 +526,7 @@ def test_fifty_run_campaign_meets_the_accuracy_goals(tmp_path: Path) -> None:
     spec = load_spec().with_options(n_runs=50)
     out = Path(os.environ.get("GSOE_MC_SLOW_OUT", tmp_path / "mc50"))
     run_campaign(spec, out, resume=out.exists(), progress=False)
+    write_report(out)
     summary = json.loads((out / "summary.json").read_text())
     missed = [g for g in summary["goals"] if not g["met"]]
     detail = "; ".join(f"{g['name']}: {g['stat']}({g['metric']}) = {g['value']} vs {g['op']} {g['threshold']} "

@@ -270,7 +270,7 @@ def test_bad_inputs_are_rejected(town_renderer):
 
 
 def test_render_cli_writes_png(tmp_path, capsys):
-    from nav.cli import main
+    from cli.main import main
 
     out = tmp_path / "frame.png"
     rc = main(["render", "--texture", "noise", "--alt-m", "100", "--north-m", "5", "--east-m", "-3",

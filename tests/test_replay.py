@@ -20,10 +20,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from cli.main import main
 from common.logio import read_log as read_csv_stream
 from fusion.measurements import OpticalDisplacement
 from fusion.state import S
-from nav.cli import main
 from nav.logreader import AirspeedSample, GnssSample
 from nav.replay import (
     OPTICAL_SOURCE_NONE,

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 from scipy.ndimage import uniform_filter1d
 
+from cli.main import main
 from common.configfile import DEFAULT_CONFIG as DEFAULT_TOML
 from common.logio import read_log
 from fusion.config import ekf_config_from_raw
-from nav.cli import main
 from pipeline.config import load_gsoe_config
 from sim.dynamics import AIRCRAFT_ROOT
 from sim.run import WIND_TRUTH_WINDOW_S, run_flight
@@ -329,7 +329,7 @@ def test_ctrl_c_leaves_a_readable_partial_log(tmp_path):
     # The child gets SIGINT's default disposition: a suite started as a background job of a non-interactive shell
     # runs with SIGINT ignored, the child would inherit that, and Python then never raises KeyboardInterrupt (the
     # flight ran to its end with the interrupt sent).
-    proc = subprocess.Popen([sys.executable, "-m", "nav.cli", "sim", "--duration", "2000", "--out", str(tmp_path),
+    proc = subprocess.Popen([sys.executable, "-m", "cli", "sim", "--duration", "2000", "--out", str(tmp_path),
                              "--no-progress"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:

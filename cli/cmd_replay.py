@@ -54,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"gsoe replay: {e}", file=sys.stderr)
         return 2
     except (FileNotFoundError, KeyboardInterrupt):
-        raise                                      # nav.cli reports these
+        raise                                      # cli.main reports these
     except Exception as e:  # noqa: BLE001 - a bad log must end in one clear line, never a traceback
         log.debug("replay failed", exc_info=True)
         print(f"gsoe replay: unexpected failure while replaying {args.log}: {type(e).__name__}: {e}",

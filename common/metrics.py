@@ -1,8 +1,9 @@
-"""Accuracy figures of a simulated flight, computed from logged arrays against the simulator's truth.
+"""Accuracy figures of a flight, computed from logged arrays against a reference (the simulator's truth, or a
+replayed log's own GNSS and autopilot estimates).
 
 All functions take plain arrays (SI units, radians; times in seconds) and return plain floats, so that
-``gsoe sim``, the Monte Carlo campaign and the tests compute every figure the same way.  Degrees appear only in
-the names of returned figures (``*_deg``).
+``gsoe sim``, ``gsoe replay``, the Monte Carlo campaign and the tests compute every figure the same way.  Degrees
+appear only in the names of returned figures (``*_deg``).
 """
 
 from __future__ import annotations
@@ -20,7 +21,8 @@ HEADING_BIN_DEG = 1.0
 
 def interp_angle(t_query_s: ArrayLike, t_s: ArrayLike, angle_rad: ArrayLike) -> NDArray[np.float64]:
     """Interpolate an angle series (unwrapped first, so that it does not jump across +-pi)."""
-    return np.asarray(wrap_2pi(np.interp(t_query_s, t_s, np.unwrap(np.asarray(angle_rad, dtype=float)))))
+    t_q, t = np.asarray(t_query_s, dtype=float), np.asarray(t_s, dtype=float)
+    return np.asarray(wrap_2pi(np.interp(t_q, t, np.unwrap(np.asarray(angle_rad, dtype=float)))), dtype=float)
 
 
 def true_drift_rad(vel_n_m_s: ArrayLike, vel_e_m_s: ArrayLike, yaw_rad: ArrayLike) -> NDArray[np.float64]:
@@ -64,7 +66,7 @@ def median_per_heading_deg(yaw_rad: ArrayLike, value_rad: ArrayLike, bin_deg: fl
     n_bins = int(round(360.0 / bin_deg))
     idx = (np.degrees(np.asarray(wrap_2pi(yaw_rad))) // bin_deg).astype(int) % n_bins
     vals = np.degrees(np.asarray(value_rad, dtype=float))
-    med = np.full(n_bins, np.nan)
+    med = np.full(n_bins, np.nan, dtype=float)
     order = np.argsort(idx, kind="stable")
     idx_s, vals_s = idx[order], vals[order]
     bounds = np.searchsorted(idx_s, np.arange(n_bins + 1))
@@ -72,7 +74,8 @@ def median_per_heading_deg(yaw_rad: ArrayLike, value_rad: ArrayLike, bin_deg: fl
         lo, hi = bounds[b], bounds[b + 1]
         if hi > lo:
             med[b] = np.median(vals_s[lo:hi])
-    return (np.arange(n_bins) + 0.5) * bin_deg, med
+    centres = (np.arange(n_bins, dtype=float) + 0.5) * bin_deg
+    return centres, med
 
 
 def wind_from_rad(wind_n_m_s: ArrayLike, wind_e_m_s: ArrayLike) -> NDArray[np.float64]:

@@ -20,9 +20,11 @@ import os
 import signal
 import sys
 import time
-import tomllib
 from pathlib import Path
 from typing import Any
+
+from common.config import ConfigError
+from common.configfile import apply_overrides, parse_override
 
 log = logging.getLogger(__name__)
 
@@ -36,27 +38,10 @@ def _pair(text: str) -> tuple[float, float]:
 
 
 def _setting(text: str) -> tuple[list[str], Any]:
-    key, sep, value = text.partition("=")
-    if not sep or not key.strip():
-        raise argparse.ArgumentTypeError(f"expected DOTTED.KEY=VALUE, got {text!r}")
     try:
-        parsed = tomllib.loads(f"v = {value}")["v"]
-    except tomllib.TOMLDecodeError:
-        raise argparse.ArgumentTypeError(f"{key}: {value!r} is not a TOML value (strings need quotes)") from None
-    return key.strip().split("."), parsed
-
-
-def apply_settings(raw: dict[str, Any], settings: list[tuple[list[str], Any]]) -> dict[str, Any]:
-    """``raw`` with each ``(path, value)`` set (tables created as needed); validation happens when it is built."""
-    for path, value in settings:
-        node = raw
-        for part in path[:-1]:
-            nxt = node.setdefault(part, {})
-            if not isinstance(nxt, dict):
-                raise argparse.ArgumentTypeError(f"--set {'.'.join(path)}: {part} is not a table")
-            node = nxt
-        node[path[-1]] = value
-    return raw
+        return parse_override(text)
+    except ConfigError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -77,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
     from pipeline.config import load_gsoe_config
 
     gsoe_cfg, raw = load_gsoe_config(args.config)
-    raw = apply_settings(raw, args.settings)
+    raw = apply_overrides(raw, args.settings)
     log_dir = args.log_dir or str(Path("logs") / time.strftime("companion-%Y%m%dT%H%M%SZ", time.gmtime()))
     key = None
     if args.signing_key:

@@ -1,7 +1,7 @@
 """``gsoe montecarlo [-n N] [--scenario BASE] [--spec FILE] [--duration S] [--scheduler ADDR] [--workers K]
 [--out DIR] [--resume [--retry-failed]] [--only I] [--seed BASE_SEED]``
 
-Flies a seeded Monte Carlo campaign of simulated flights (:mod:`nav.montecarlo`) on a local process pool (all
+Flies a seeded Monte Carlo campaign of simulated flights (:mod:`sim.montecarlo`) on a local process pool (all
 cores by default) or on a Dask cluster (``--scheduler tcp://HOST:PORT``), writing each run to ``DIR/runs`` as it
 finishes, then ``DIR/summary.json`` and ``DIR/report.html``.  ``--resume`` completes an interrupted campaign (or
 extends it with a larger ``-n``) without re-flying finished runs; with nothing left to fly it re-aggregates.
@@ -92,7 +92,7 @@ def _print_goals(summary: dict[str, Any]) -> None:
 
 
 def _refly(args: argparse.Namespace) -> int:
-    from nav.montecarlo import (
+    from sim.montecarlo import (
         CAMPAIGN_FILE,
         code_fingerprint,
         load_campaign_spec,
@@ -132,7 +132,8 @@ def _refly(args: argparse.Namespace) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
-    from nav.montecarlo import load_campaign_spec, load_spec, read_campaign, run_campaign
+    from sim.mc_report import write_report
+    from sim.montecarlo import load_campaign_spec, load_spec, read_campaign, run_campaign
 
     if args.only is not None:
         return _refly(args)
@@ -156,6 +157,7 @@ def run(args: argparse.Namespace) -> int:
         return _fail("--retry-failed needs --resume")
     result = run_campaign(spec, out, scheduler=args.scheduler, workers=args.workers, resume=args.resume,
                           retry_failed=args.retry_failed, progress=not args.no_progress)
+    report = write_report(out)
     import json
 
     summary = json.loads((out / "summary.json").read_text())
@@ -163,5 +165,5 @@ def run(args: argparse.Namespace) -> int:
           f"{len(result.failed)} failed this session, {result.wall_s:.1f} s on {result.backend} "
           f"({result.workers} workers)")
     _print_goals(summary)
-    print(f"report: {out / 'report.html'}")
+    print(f"report: {report}")
     return 1 if summary["campaign"]["n_failed"] else 0

@@ -41,8 +41,8 @@ signature.
 
 Output folder ``DIR``: ``campaign.json`` (the resolved spec, seed, duration, one entry per session),
 ``runs/run_00042.json`` (one :class:`RunRecord` per run, each written atomically as soon as it finishes),
-``summary.json`` (:func:`summarize`) and ``report.html`` (:mod:`nav.mc_report`).  Non-finite numbers are stored
-as JSON ``null``.
+``summary.json`` (:func:`summarize`) and, written from these by :func:`sim.mc_report.write_report` (the caller's
+choice: ``gsoe montecarlo`` does), ``report.html``.  Non-finite numbers are stored as JSON ``null``.
 """
 
 from __future__ import annotations
@@ -71,16 +71,16 @@ from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from scipy import stats as sps
 
-from common.config import ConfigError, build, in_range, require, to_dict
+from common.config import ConfigError, In, Validated, build, in_range, require, to_dict
 from common.configfile import CONFIG_DIR, read_toml
+from common.metrics import nees_bounds
 from gsoe.config import CameraConfig
 from pipeline.config import load_gsoe_config
-from sim.metrics import nees_bounds
 from sim.scenario import SEED_MAX, Scenario, build_scenario, load_scenario, scenario_path, scenario_with_overrides
 
 log = logging.getLogger(__name__)
@@ -94,7 +94,7 @@ CAMPAIGN_FILE = "campaign.json"
 SUMMARY_FILE = "summary.json"
 CAMPAIGN_FORMAT = 1
 #: Folders (beside ``config/``) whose files decide a flight: hashed by :func:`code_fingerprint`.
-CODE_PACKAGES = ("gsoe", "fusion", "sim", "nav", "config")
+CODE_PACKAGES = ("common", "gsoe", "fusion", "pipeline", "sim", "config")
 #: Hex digits of the SHA-256 kept as the fingerprint.
 CODE_FINGERPRINT_HEX = 16
 MAX_RUNS = 1_000_000
@@ -219,8 +219,13 @@ class Dist:
         return [self.value]
 
 
+_Seed = Annotated[int, In(0, SEED_MAX)]
+_NRuns = Annotated[int, In(1, MAX_RUNS)]
+_RunIndices = Annotated[tuple[int, ...], In(0, MAX_RUNS)]
+
+
 @dataclass(frozen=True)
-class Goal:
+class Goal(Validated):
     """An accuracy goal: ``stat`` over the (eligible) runs of per-run ``metric`` must be ``op`` ``threshold``.
 
     ``min_wind_m_s``: only runs whose scenario wind (``wind.speed_m_s``) is at least this count.  The fraction of
@@ -233,13 +238,13 @@ class Goal:
     op: Literal["<=", ">="]
     threshold: float
     stat: Literal["median", "mean", "p95", "p05", "max", "min"] = "median"
-    min_wind_m_s: float = 0.0
+    min_wind_m_s: Annotated[float, In(0.0, 100.0)] = 0.0
     description: str = ""
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         require(bool(self.name.strip()), "name", "must not be empty")
         require(bool(self.metric.strip()), "metric", "must not be empty")
-        in_range(self.min_wind_m_s, 0.0, 100.0, "min_wind_m_s")
 
     def ok(self, value: float) -> bool:
         return math.isfinite(value) and (value <= self.threshold if self.op == "<=" else value >= self.threshold)
@@ -262,31 +267,26 @@ DEFAULT_GOALS: tuple[Goal, ...] = (
 
 
 @dataclass(frozen=True)
-class _SpecFile:
-    """What a spec file holds (validated by :func:`gsoe.config.build`)."""
+class _SpecFile(Validated):
+    """What a spec file holds (validated by :func:`common.config.build`)."""
 
     name: str
     description: str = ""
     base_scenario: str = "paper_sil"
-    base_seed: int = 0
-    n_runs: int = 100
-    duration_s: float = 0.0  # 0: the base scenario's duration
+    base_seed: _Seed = 0
+    n_runs: _NRuns = 100
+    duration_s: Annotated[float, In(0.0, 86_400.0, doc="each flight's length, s (0: the base scenario's)")] = 0.0
     runner: str = DEFAULT_RUNNER
-    fail_runs: tuple[int, ...] = ()
-    crash_runs: tuple[int, ...] = ()
+    fail_runs: _RunIndices = ()
+    crash_runs: _RunIndices = ()
     fixed: Any = field(default_factory=dict)
     params: Any = field(default_factory=dict)
     goals: tuple[Goal, ...] = DEFAULT_GOALS
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         require(bool(self.name.strip()), "name", "must not be empty")
-        in_range(self.base_seed, 0, SEED_MAX, "base_seed")
-        in_range(self.n_runs, 1, MAX_RUNS, "n_runs")
-        in_range(self.duration_s, 0.0, 86_400.0, "duration_s")
         _check_runner(self.runner, "runner")
-        for name in ("fail_runs", "crash_runs"):
-            for j, i in enumerate(getattr(self, name)):
-                in_range(i, 0, MAX_RUNS, f"{name}[{j}]")
         require(isinstance(self.fixed, Mapping), "fixed", "must be a table of dotted keys")
         require(isinstance(self.params, Mapping), "params", "must be a table of dotted keys")
         for k in self.params:
@@ -301,7 +301,7 @@ def _check_runner(runner: str, where: str) -> None:
 
 
 @dataclass(frozen=True)
-class MonteCarloSpec:
+class MonteCarloSpec(Validated):
     """A validated campaign: base scenario, per-run distributions, goals (see the module docstring).
 
     ``camera`` is the nominal camera the ``mc.camera_*`` calibration-error keys perturb; ``duration_s`` is each
@@ -312,15 +312,15 @@ class MonteCarloSpec:
     description: str
     base: Scenario
     camera: CameraConfig
-    base_seed: int
-    n_runs: int
-    duration_s: float
+    base_seed: _Seed
+    n_runs: _NRuns
+    duration_s: Annotated[float, In(0.0, 86_400.0, lo_open=True)]
     runner: str
     fixed: Mapping[str, Any]
     params: Mapping[str, Dist]
     goals: tuple[Goal, ...]
-    fail_runs: tuple[int, ...] = ()
-    crash_runs: tuple[int, ...] = ()
+    fail_runs: _RunIndices = ()
+    crash_runs: _RunIndices = ()
     source: str = ""
 
     def with_options(self, *, n_runs: int | None = None, base_seed: int | None = None,
@@ -329,9 +329,6 @@ class MonteCarloSpec:
         n = self.n_runs if n_runs is None else n_runs
         seed = self.base_seed if base_seed is None else base_seed
         dur = self.duration_s if duration_s is None else duration_s
-        in_range(n, 1, MAX_RUNS, "n_runs")
-        in_range(seed, 0, SEED_MAX, "base_seed")
-        in_range(dur, 0.0, 86_400.0, "duration_s", lo_open=True)
         return dataclasses.replace(self, n_runs=n, base_seed=seed, duration_s=float(dur))
 
 
@@ -928,9 +925,9 @@ def _check_campaign_folder(out_dir: Path, spec: MonteCarloSpec, resume: bool) ->
 
 def run_campaign(spec: MonteCarloSpec, out_dir: str | Path, *, indices: Iterable[int] | None = None,
                  scheduler: str | None = None, workers: int | None = None, resume: bool = False,
-                 retry_failed: bool = False, progress: bool = True, report: bool = True) -> CampaignResult:
-    """Fly the runs of ``spec`` (all ``n_runs``, or ``indices``) into ``out_dir``, then write ``summary.json`` and
-    (``report``) ``report.html``.
+                 retry_failed: bool = False, progress: bool = True) -> CampaignResult:
+    """Fly the runs of ``spec`` (all ``n_runs``, or ``indices``) into ``out_dir``, then write ``summary.json``
+    (``report.html`` is :func:`sim.mc_report.write_report`'s, from the folder).
 
     ``scheduler``: address of a Dask scheduler (``tcp://HOST:PORT``); otherwise a local process pool of
     ``workers`` processes (default all cores; 0 flies the runs in this process, for debugging).  ``resume``: skip
@@ -992,10 +989,6 @@ def run_campaign(spec: MonteCarloSpec, out_dir: str | Path, *, indices: Iterable
                                  "workers": n_workers, "code": code_fingerprint()})
         write_json(out / CAMPAIGN_FILE, camp)
     write_summary(out, spec)
-    if report:
-        from nav.mc_report import write_report
-
-        write_report(out)
     return CampaignResult(out, sorted(flown), skipped, sorted(failed), wall, backend, n_workers)
 
 

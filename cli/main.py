@@ -14,13 +14,13 @@ from common.config import ConfigError
 
 # subcommand -> (module, one-line help)
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
-    "calibrate": ("nav.cmd_calibrate", "calibrate a camera from chessboard images and write a camera file"),
-    "render": ("nav.cmd_render", "render one raw fisheye camera frame to PNG"),
-    "bench": ("nav.cmd_bench", "benchmark the per-frame optical pipeline, renderer and EKF step"),
-    "sim": ("nav.cmd_sim", "fly a simulated scenario (default: the paper's SIL flight) and report"),
-    "replay": ("nav.cmd_replay", "replay a real flight log (.tlog, .bin, .ulg) through the EKF"),
-    "companion": ("nav.cmd_companion", "run the companion app next to an autopilot"),
-    "montecarlo": ("nav.cmd_montecarlo", "run a seeded Monte Carlo campaign of simulated flights"),
+    "calibrate": ("cli.cmd_calibrate", "calibrate a camera from chessboard images and write a camera file"),
+    "render": ("cli.cmd_render", "render one raw fisheye camera frame to PNG"),
+    "bench": ("cli.cmd_bench", "benchmark the per-frame optical pipeline, renderer and EKF step"),
+    "sim": ("cli.cmd_sim", "fly a simulated scenario (default: the paper's SIL flight) and report"),
+    "replay": ("cli.cmd_replay", "replay a real flight log (.tlog, .bin, .ulg) through the EKF"),
+    "companion": ("cli.cmd_companion", "run the companion app next to an autopilot"),
+    "montecarlo": ("cli.cmd_montecarlo", "run a seeded Monte Carlo campaign of simulated flights"),
 }
 
 

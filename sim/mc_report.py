@@ -1,6 +1,6 @@
 """``report.html`` of a Monte Carlo campaign: figures (matplotlib Agg PNGs next to it) and tables.
 
-Reads the campaign folder written by :func:`nav.montecarlo.run_campaign` (``campaign.json``, ``runs/*.json``,
+Reads the campaign folder written by :func:`sim.montecarlo.run_campaign` (``campaign.json``, ``runs/*.json``,
 ``summary.json``) and writes ``report.html`` with: the goals and the fraction of runs meeting each; EKF vs baseline
 side by side; error distributions; errors against wind speed, altitude and texture; drift error against heading;
 NEES over time against its chi-square bounds (when the runs report a NEES series); throughput and memory; the worst
@@ -24,7 +24,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from nav.montecarlo import (  # noqa: E402
+from sim.montecarlo import (  # noqa: E402
     SUMMARY_FILE,
     MonteCarloSpec,
     RunRecord,

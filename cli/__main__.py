@@ -1,0 +1,5 @@
+"""``python -m cli SUBCOMMAND ...``: the ``gsoe`` command line."""
+
+from cli.main import main
+
+raise SystemExit(main())
