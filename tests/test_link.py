@@ -147,8 +147,7 @@ def test_invalid_or_uncertain_estimates_are_not_sent(pair):
         estimate(t, valid=False, reason="optical quality low"),
         estimate(t + 1_000_000, drift_rad=math.nan),
         estimate(t + 2_000_000, vel_ne_m_s=np.array([np.inf, 0.0])),
-        estimate(t + 3_000_000, vel_cov_ne=np.diag([9.0, 9.0])),
-        estimate(t + 4_000_000, drift_sigma_rad=math.radians(20.0)),
+        estimate(t + 3_000_000, drift_rad=math.radians(95.0)),
         estimate(t + 5_000_000, wind_cov_ne=np.array([[1.0, 2.0], [2.0, 1.0]])),  # not PSD
     ]
     drift_before = len(v.output_times.get("NAMED_VALUE_FLOAT:GSOE_DRIFT", []))
