@@ -4,7 +4,8 @@ Every driver feeds this one object and does nothing else between samples and est
 sensors), ``gsoe companion`` (the autopilot link and the camera), ``gsoe replay`` (a flight log) and the Monte Carlo
 runner (through ``gsoe sim``).  What it owns, each decided here once:
 
-- coupling the optical estimator's attitude buffer to the AHRS and IMU samples;
+- coupling the optical estimator's attitude buffer to the AHRS and IMU samples, after their plausibility tests
+  (:mod:`pipeline.plausibility`: in range but impossible for the airframe, rejected and counted by reason);
 - holding a frame until attitude and IMU samples cover its exposure, at most ``attitude_wait_s`` of the pipeline's
   clock (the newest sample or :meth:`NavPipeline.poll` time), after which the attitude buffer extrapolates;
 - the EKF start policy: at the first usable GNSS fix once attitude is known; with ``ekf_start = "gnss_or_air_data"``
@@ -44,6 +45,7 @@ from gsoe.config import GsoeConfig
 from gsoe.cycle import GsoeEstimator
 from gsoe.stabilise import Frame
 from pipeline import records as rec
+from pipeline.plausibility import SamplePlausibility
 
 log = logging.getLogger(__name__)
 
@@ -71,6 +73,17 @@ class PipelineConfig(Validated):
     quality_window_steps: Annotated[int, In(1, 10_000)] = 30
     # the EKF's attitude: "compensated" (AHRS latency removed and noise averaged with the gyro) or "ahrs" (as given)
     attitude_source: Literal["compensated", "ahrs"] = "compensated"
+    # plausibility of IMU and attitude samples (pipeline.plausibility; a threshold of 0 switches its test off):
+    # largest change of the specific force (m/s^2, any axis) from the last accepted IMU sample
+    imu_max_accel_step_m_s2: Annotated[float, In(0.0, 1000.0)] = 20.0
+    # largest change of the body rate (rad/s, any axis) from the last accepted IMU sample
+    imu_max_gyro_step_rad_s: Annotated[float, In(0.0, 100.0)] = 3.0
+    # largest difference (rad/s, any axis) between the gyro and the AHRS attitude's rate
+    gyro_ahrs_max_diff_rad_s: Annotated[float, In(0.0, 100.0)] = 3.0
+    # a stream silent this long (s; a link loss) starts afresh: its next sample is compared with none
+    plausibility_max_gap_s: Annotated[float, In(0.0, 60.0)] = 0.5
+    # this many consecutive rejected samples that agree with each other are a genuine change: the last is accepted
+    plausibility_confirm_samples: Annotated[int, In(2, 1000)] = 3
 
 
 @dataclass(frozen=True, slots=True)
@@ -124,6 +137,8 @@ class NavPipeline:
         #: the baro altitude of the ground level at the NED origin (m)
         self.ground_alt_m = 0.0
         self._sink = sink
+        #: IMU and attitude samples that are in range but implausible for the airframe never reach GSOE or the EKF
+        self.plausibility = SamplePlausibility(cfg, sink)
         self.timers = timers if timers is not None else {"gsoe": 0.0, "ekf": 0.0}
         self.timers.setdefault("gsoe", 0.0)
         self.timers.setdefault("ekf", 0.0)
@@ -153,6 +168,8 @@ class NavPipeline:
         """An IMU sample: into the attitude buffer now; the EKF predicts with it once the samples stamped up to
         ``s.t_us`` are in (an AHRS sample of the same stamp, or any later sample), so that its attitude uses them."""
         self._write("imu", rec.imu_record, s)
+        if not self.plausibility.imu(s):
+            return
         t0 = time.perf_counter()
         if self.gsoe.push_imu(s):
             self._newest_imu_us = max(self._newest_imu_us, s.t_us)
@@ -163,6 +180,8 @@ class NavPipeline:
 
     def on_attitude(self, s: AttitudeSample) -> None:
         self._write("attitude", rec.attitude_record, s)
+        if not self.plausibility.attitude(s):
+            return
         t0 = time.perf_counter()
         if self.gsoe.push_attitude(s):
             self._newest_att_us = max(self._newest_att_us, s.t_us)
