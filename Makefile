@@ -14,7 +14,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 sim: $(STAMP)
-	$(VENV)/bin/gsoe sim --out out/sim
+	$(VENV)/bin/gsoe sim --out out/sim --overwrite
 
 test: $(STAMP)
 	$(VENV)/bin/python -m pytest -q

@@ -9,6 +9,9 @@ designate one later over ``--gcs URL`` (COMMAND_LONG MAV_CMD_USER_1, param1/para
 value of the ``[companion]`` or ``[ekf]`` tables of the configuration file, written as in TOML
 (``--set companion.guidance.correct_drift=false``, ``--set 'companion.tracking.source="mavlink"'``).
 Stops cleanly on SIGINT/SIGTERM; ``kill -9`` loses at most the last ``[companion] log_flush_s`` of the log.
+A ``--log-dir`` that holds another run's logs is never appended to: the companion logs into the next free
+``DIR-2``, ``DIR-3``, ... beside it (it must not refuse to fly), or replaces them with ``--overwrite``
+(:func:`common.logio.claim_run_folder`).
 """
 
 from __future__ import annotations
@@ -48,7 +51,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--connect", required=True, help="MAVSDK connection URL, e.g. udpin://0.0.0.0:14540")
     parser.add_argument("--camera", required=True, help="camera index, file, GStreamer/RTSP URL or sim://HOST:PORT")
     parser.add_argument("--config", help="configuration file (default: config/default.toml)")
-    parser.add_argument("--log-dir", help="log folder (default: logs/companion-<UTC time>)")
+    parser.add_argument("--log-dir", help="log folder (default: logs/companion-<UTC time>); one holding another run's "
+                        "logs gives DIR-2, DIR-3, ...")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace the logs of an earlier run in --log-dir instead of logging beside them")
     parser.add_argument("--target-px", type=_pair, help="designate a target at X,Y (raw image pixels)")
     parser.add_argument("--gcs", help="the companion's own link for ground-station commands (pymavlink URL)")
     parser.add_argument("--signing-key", help="MAVLink 2 signing key file for --gcs (unsigned commands refused)")
@@ -58,12 +64,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from common.logio import claim_run_folder
     from nav.companion import Companion
     from pipeline.config import load_gsoe_config
 
     gsoe_cfg, raw = load_gsoe_config(args.config)
     raw = apply_overrides(raw, args.settings)
-    log_dir = args.log_dir or str(Path("logs") / time.strftime("companion-%Y%m%dT%H%M%SZ", time.gmtime()))
+    asked = Path(args.log_dir or Path("logs") / time.strftime("companion-%Y%m%dT%H%M%SZ", time.gmtime()))
+    log_dir = str(claim_run_folder(asked, overwrite=args.overwrite, numbered=True))
+    if Path(log_dir) != asked:
+        log.warning("log folder %s holds the logs of another run: logging to %s", asked, log_dir)
     key = None
     if args.signing_key:
         from nav.signing import load_key

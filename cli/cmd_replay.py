@@ -1,5 +1,6 @@
-"""``gsoe replay LOG [--gnss-off-at S] [--out DIR] [--config FILE] [--optical-sigma-px X] [--seed N] [--no-optical]``:
-replay a real flight log (.tlog, .bin, .ulg) through the navigation EKF (see :mod:`nav.replay`).
+"""``gsoe replay LOG [--gnss-off-at S] [--out DIR] [--overwrite] [--config FILE] [--optical-sigma-px X] [--seed N]
+[--no-optical]``: replay a real flight log (.tlog, .bin, .ulg) through the navigation EKF (see :mod:`nav.replay`).
+A folder that holds another run's logs is refused unless ``--overwrite`` (:func:`common.logio.claim_run_folder`).
 
 Without a camera in the log the optical measurements are synthesised from GNSS ground velocity (said so in the
 output); they keep running after ``--gnss-off-at`` (they play the camera), only GNSS fusion stops.  ``--no-optical``
@@ -31,6 +32,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="stop fusing GNSS position and velocity S seconds after the log's start and dead-reckon "
                         "(the synthetic optical steps keep running)")
     p.add_argument("--out", default="out/replay", help="output folder (default out/replay)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace the logs of an earlier run in --out (without it such a folder is refused)")
     p.add_argument("--config", default=None, help="configuration file (default config/default.toml)")
     p.add_argument("--optical-sigma-px", type=float, default=None, metavar="X",
                    help="pixel noise (1 sigma per axis) of the synthetic optical steps (default: [replay] "
@@ -42,10 +45,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from common.logio import claim_run_folder
     from nav.logreader import LogFormatError
     from nav.replay import OPTICAL_SOURCE_SYNTHETIC, ReplayError, run_replay
 
-    out = Path(args.out)
+    if not Path(args.log).is_file():                # before the output folder is claimed (and maybe cleared)
+        raise FileNotFoundError(2, "no such log file", args.log)
+    out = claim_run_folder(Path(args.out), overwrite=args.overwrite)
     try:
         result = run_replay(args.log, out_dir=out, config_path=args.config, gnss_off_at_s=args.gnss_off_at,
                             optical=not args.no_optical, optical_sigma_px=args.optical_sigma_px, seed=args.seed,

@@ -1,4 +1,6 @@
-"""``gsoe sim [SCENARIO] [--duration S] [--seed N] [--out DIR]``: fly a simulated scenario and report."""
+"""``gsoe sim [SCENARIO] [--duration S] [--seed N] [--out DIR] [--overwrite]``: fly a simulated scenario and report.
+
+A folder that holds another run's logs is refused unless ``--overwrite`` (:func:`common.logio.claim_run_folder`)."""
 
 from __future__ import annotations
 
@@ -23,12 +25,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--duration", type=float, default=None, help="flight length in seconds (default: scenario's)")
     p.add_argument("--seed", type=int, default=None, help="random seed (default: scenario's)")
     p.add_argument("--out", default="out/sim", help="output folder (default out/sim)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace the logs of an earlier run in --out (without it such a folder is refused)")
     p.add_argument("--config", default=None, help="estimator configuration (default config/default.toml)")
     p.add_argument("--full-frame", action="store_true", help="render whole frames instead of the estimator's ROI")
     p.add_argument("--no-progress", action="store_true")
 
 
 def run(args: argparse.Namespace) -> int:
+    from common.logio import claim_run_folder
     from sim.run import run_flight
     from sim.scenario import load_scenario
 
@@ -37,8 +42,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"gsoe sim: --duration must be > 0, got {args.duration}")
         return 2
     seed = scn.seed if args.seed is None else args.seed
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = claim_run_folder(Path(args.out), overwrite=args.overwrite)
     metrics = run_flight(scn, seed=seed, duration_s=args.duration, out_dir=out, progress=not args.no_progress,
                          config_path=args.config, full_frame=args.full_frame)
     print(f"gsoe sim: {scn.name}, seed {seed}, wrote {out}/ (metrics.json, report.html, plots, CSV logs)")

@@ -50,6 +50,9 @@ def main(argv: list[str] | None = None) -> int:
     except FileNotFoundError as e:
         print(f"gsoe {args.command}: file not found: {e.filename or e}", file=sys.stderr)
         return 2
+    except (FileExistsError, NotADirectoryError) as e:  # an output folder in use (common.logio.claim_run_folder)
+        print(f"gsoe {args.command}: {e}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print(f"gsoe {args.command}: interrupted", file=sys.stderr)
         return 130

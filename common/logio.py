@@ -14,6 +14,11 @@ outputs with sigmas), ``aid_status.csv`` (per aid source and step: innovation, v
 
 Writes are append-only and flushed to the OS at least every ``flush_interval_s`` (and on close), so a killed
 process loses at most that much; a partially written last line is dropped by readers (``read_log``).
+
+Runs never mix: ``gsoe sim``, ``gsoe replay`` and the companion take their folder through :func:`claim_run_folder`,
+the one place that decides whether a folder holds another run's logs (a ``*.csv`` stream or ``metrics.json``) and
+what then happens: refused (:class:`RunFolderInUse`), cleared of that run's files (``overwrite``), or a new
+numbered folder beside it (``numbered``: ``DIR-2``, ``DIR-3``, ...).
 """
 
 from __future__ import annotations
@@ -94,6 +99,52 @@ class CsvStream:
             self._fh.flush()
             os.fsync(self._fh.fileno())
             self._fh.close()
+
+
+#: files that mark a folder as holding a run's logs
+RUN_LOG_PATTERNS = ("*.csv", "metrics.json")
+#: files of a run that ``overwrite`` deletes (the logs, the metrics, the report and its figures)
+RUN_OUTPUT_PATTERNS = ("*.csv", "metrics.json", "report.html", "*.png")
+
+
+class RunFolderInUse(FileExistsError):
+    """The folder holds another run's logs (the message names the folder, what is there, and the ways out)."""
+
+
+def run_files(folder: str | Path, patterns: Sequence[str] = RUN_LOG_PATTERNS) -> list[Path]:
+    """The files directly in ``folder`` that match ``patterns`` (none when it does not exist), sorted."""
+    p = Path(folder)
+    if not p.is_dir():
+        return []
+    return sorted({f for pat in patterns for f in p.glob(pat) if f.is_file()})
+
+
+def claim_run_folder(folder: str | Path, *, overwrite: bool = False, numbered: bool = False) -> Path:
+    """The folder a new run writes into, created; never one that holds another run's logs (:data:`RUN_LOG_PATTERNS`).
+
+    When ``folder`` holds them: with ``overwrite`` the earlier run's files (:data:`RUN_OUTPUT_PATTERNS`, directly in
+    the folder; anything else is left) are deleted first; else with ``numbered`` the first of ``folder-2``,
+    ``folder-3``, ... that holds no run's logs is returned; else :class:`RunFolderInUse` is raised and nothing is
+    touched.  ``NotADirectoryError`` when ``folder`` (or a numbered one) is a file.
+    """
+    p = Path(folder)
+    if p.exists() and not p.is_dir():
+        raise NotADirectoryError(f"{p} is a file, not a folder")
+    held = run_files(p)
+    if held and overwrite:
+        for f in run_files(p, RUN_OUTPUT_PATTERNS):
+            f.unlink()
+    elif held and numbered:
+        n = 2
+        while run_files(p.with_name(f"{p.name}-{n}")) or p.with_name(f"{p.name}-{n}").is_file():
+            n += 1
+        p = p.with_name(f"{p.name}-{n}")
+    elif held:
+        names = ", ".join(f.name for f in held[:3]) + (", ..." if len(held) > 3 else "")
+        raise RunFolderInUse(f"{p} holds the logs of another run ({names}); choose another folder or add "
+                             "--overwrite to replace them")
+    p.mkdir(parents=True, exist_ok=True)
+    return p
 
 
 class RunLog:
