@@ -38,15 +38,12 @@ def bench_ekf_step(n: int = 2000, *, cfg: EkfConfig | None = None, imu_rate_hz: 
     cfg = dataclasses.replace(cfg or EkfConfig(), fusion_delay_s=0.0)
     imu_per_frame = max(1, round(imu_rate_hz / camera_rate_hz))
     imu_dt_us = round(1e6 / imu_rate_hz)
-    v = np.array([airspeed_m_s, 0.0, 0.0])
-    ekf = NavEkf(cfg, t_us=0, pos_ned_m=[0.0, 0.0, -height_m], vel_ned_m_s=v)
+    ekf = NavEkf(cfg, t_us=0, pos_ned_m=[0.0, 0.0, -height_m], vel_ned_m_s=[airspeed_m_s, 0.0, 0.0])
     gyro = np.zeros(3)
     f_b = np.array([0.0, 0.0, -9.80665])
-    q = MatchQuality(psr=15.0, texture_std=30.0, ssd_per_px=10.0, valid=True)
-    gsd = height_m / focal_px
     n_warm = min(50, n)
     parts: dict[str, list[float]] = {"frame": [], "imu": [], "optical": [], "airspeed": [], "baro": []}
-    cycle, base_t, base_x = 0, 0, 0.0
+    base = (0, 0, 0.0)                                    # the cycle: id, base time (µs), base north (m)
     n_pred0 = 0
     t = 0
     for i in range(n + n_warm):
@@ -57,17 +54,13 @@ def bench_ekf_step(n: int = 2000, *, cfg: EkfConfig | None = None, imu_rate_hz: 
         for _ in range(imu_per_frame):
             t += imu_dt_us
             imu.append((ImuSample(t, gyro, f_b), AttitudeSample(t, 0.0, 0.0, 0.0)))
+        k = i % cycle_frames
+        if k == 0:
+            base = (i // cycle_frames, t, airspeed_m_s * t / 1e6)
+        step = _step(t, base, k, airspeed_m_s, height_m, focal_px)
         t_imu0 = time.perf_counter_ns()
         for sample, att in imu:
             ekf.predict(sample, att)
-        t_imu1 = time.perf_counter_ns()
-        x_n = airspeed_m_s * t / 1e6
-        k = i % cycle_frames
-        if k == 0:
-            cycle, base_t, base_x = i // cycle_frames, t, x_n
-        step = GsoeStep(t_us=t, base_t_us=base_t, cycle_id=cycle, step=k, dx_px=0.0, dy_px=(x_n - base_x) / gsd,
-                        base_yaw_rad=0.0, yaw_rad=0.0, gsd_m_px=gsd, height_agl_m=height_m, focal_px=focal_px,
-                        rel_rot_rad=0.0, quality=q, valid=True, new_cycle=k == 0)
         t0 = time.perf_counter_ns()
         ekf.fuse_optical(step)
         t1 = time.perf_counter_ns()
@@ -76,11 +69,26 @@ def bench_ekf_step(n: int = 2000, *, cfg: EkfConfig | None = None, imu_rate_hz: 
         ekf.fuse_baro(t, height_m)
         t3 = time.perf_counter_ns()
         if i >= n_warm:
-            parts["frame"].append((t3 - t_imu0) / _NS_PER_US)
-            parts["imu"].append((t_imu1 - t_imu0) / _NS_PER_US)
-            parts["optical"].append((t1 - t0) / _NS_PER_US)
-            parts["airspeed"].append((t2 - t1) / _NS_PER_US)
-            parts["baro"].append((t3 - t2) / _NS_PER_US)
+            for key, a, b in (("frame", t_imu0, t3), ("imu", t_imu0, t0), ("optical", t0, t1),
+                              ("airspeed", t1, t2), ("baro", t2, t3)):
+                parts[key].append((b - a) / _NS_PER_US)
+    return _figures(ekf, parts, n, imu_per_frame, (ekf.covariance_predictions - n_pred0) / n)
+
+
+def _step(t: int, base: tuple[int, int, float], k: int, airspeed_m_s: float, height_m: float,
+          focal_px: float) -> GsoeStep:
+    """Step ``k`` of the cycle ``base`` (id, base time, base north) at ``t``: straight north at the airspeed."""
+    q = MatchQuality(psr=15.0, texture_std=30.0, ssd_per_px=10.0, valid=True)
+    gsd = height_m / focal_px
+    cycle, base_t, base_x = base
+    return GsoeStep(t_us=t, base_t_us=base_t, cycle_id=cycle, step=k, dx_px=0.0,
+                    dy_px=(airspeed_m_s * t / 1e6 - base_x) / gsd, base_yaw_rad=0.0, yaw_rad=0.0, gsd_m_px=gsd,
+                    height_agl_m=height_m, focal_px=focal_px, rel_rot_rad=0.0, quality=q, valid=True,
+                    new_cycle=k == 0)
+
+
+def _figures(ekf: NavEkf, parts: dict[str, list[float]], n: int, imu_per_frame: int,
+             covariance_predictions: float) -> dict[str, Any]:
     frame = np.array(parts["frame"])
     st = ekf.status()
     if not (st["optical"].n_fused > 0 and st["airspeed"].n_fused > 0 and st["baro"].n_fused > 0):
@@ -88,7 +96,7 @@ def bench_ekf_step(n: int = 2000, *, cfg: EkfConfig | None = None, imu_rate_hz: 
     return {
         "n_frames": n,
         "imu_per_frame": imu_per_frame,
-        "covariance_predictions": (ekf.covariance_predictions - n_pred0) / n,
+        "covariance_predictions": covariance_predictions,
         "frame_us_median": float(np.median(frame)),
         "frame_us_mean": float(np.mean(frame)),
         "frame_us_p95": float(np.percentile(frame, 95)),

@@ -12,8 +12,11 @@ from scipy.optimize import approx_fprime
 from common.config import ConfigError
 from common.samples import AttitudeSample, GsoeStep, ImuSample, MatchQuality
 from fusion import ekf as ekf_mod
+from fusion.aid import SOURCES, AidSource
+from fusion.aid.base import ModelBase
 from fusion.bench import bench_ekf_step
 from fusion.config import EkfConfig, ekf_config_from_raw
+from fusion.core import Linearised
 from fusion.ekf import AID_SOURCES, ImuIncrement, NavEkf, R_nb_321, propagate
 from fusion.measurements import (
     BaroAltitude,
@@ -130,22 +133,28 @@ def test_fast_rotation_matches_gsoe_rotation():
 
 @pytest.mark.parametrize("seed", range(5))
 def test_measurement_jacobians_match_finite_differences(seed):
+    """Every model: analytic ``jacobian`` against finite differences of ``evaluate``, and ``linearise`` (the core's
+    form) consistent with ``evaluate``/``jacobian``/``covariance``."""
     rng = np.random.default_rng(seed)
     x = _random_state(rng)
     va = x[S.vel_ne] - x[S.wind_ne]
     R_nb = R_nb_from_euler(*rng.uniform(-0.4, 0.4, 2), math.atan2(va[1], va[0]) + rng.uniform(-0.3, 0.3))
-    models = [OpticalDisplacement(focal_px=351.86, base_yaw_rad=rng.uniform(-3, 3)), TrueAirspeed(),
-              SyntheticSideslip(R_nb), SyntheticSideslip(R_nb, accel_gain_rad_per_m_s2=-0.1),
-              LiftAngleOfAttack(R_nb, accel_gain_rad_per_m_s2=0.02), BaroAltitude(),
-              GnssPosition(3), GnssPosition(2), GnssVelocity(3), GnssVelocity(2)]
+    models = [OpticalDisplacement(focal_px=351.86, base_yaw_rad=rng.uniform(-3, 3), var_px2=0.3),
+              TrueAirspeed(0.25), SyntheticSideslip(R_nb, 0.0, 0.01), SyntheticSideslip(R_nb, -0.1, 0.01),
+              LiftAngleOfAttack(R_nb, 0.02, 0.001), BaroAltitude(1.0), GnssPosition.from_config(CFG0, 3),
+              GnssPosition.from_config(CFG0, 2), GnssVelocity.from_config(CFG0, 3), GnssVelocity.from_config(CFG0, 2)]
     for m in models:
         H = m.jacobian(x)
-        z, H2 = m.linearise(x)
-        np.testing.assert_array_equal(H, H2)
-        np.testing.assert_allclose(z, m.predict(x))
+        z = m.evaluate(x)
+        lin = m.linearise(x)
+        np.testing.assert_array_equal(z, lin.z_hat)
+        np.testing.assert_array_equal(m.covariance(x), np.diag(lin.r))
+        if lin.H is not None:
+            np.testing.assert_array_equal(H, np.atleast_2d(lin.H))
         eps = 1e-6 * np.maximum(1.0, np.abs(x))
-        H_fd = np.atleast_2d(approx_fprime(x, m.predict, eps))
+        H_fd = np.atleast_2d(approx_fprime(x, m.evaluate, eps))
         assert H.shape == H_fd.shape == (z.size, S.dim)
+        assert m.covariance(x).shape == (z.size, z.size)
         np.testing.assert_allclose(H, H_fd, rtol=1e-4, atol=1e-6 * max(1.0, np.abs(H).max()),
                                    err_msg=type(m).__name__)
 
@@ -154,12 +163,12 @@ def test_measurement_jacobians_match_finite_differences(seed):
 def test_anchor_reconstruction_inverts_the_optical_model_with_matching_jacobians(seed):
     rng = np.random.default_rng(seed)
     x = _random_state(rng)
-    m = OpticalDisplacement(focal_px=351.86, base_yaw_rad=rng.uniform(-3, 3))
+    m = OpticalDisplacement(focal_px=351.86, base_yaw_rad=rng.uniform(-3, 3), var_px2=0.3)
     z = rng.uniform(-30, 30, 2)
     base, J, Kz = m.base_from_step(x, z)
     xb = x.copy()
     xb[S.base_pos_ned] = base
-    np.testing.assert_allclose(m.predict(xb), z, atol=1e-9)         # the reconstructed base reproduces the step
+    np.testing.assert_allclose(m.evaluate(xb), z, atol=1e-9)         # the reconstructed base reproduces the step
     eps = 1e-6 * np.maximum(1.0, np.abs(x))
     np.testing.assert_allclose(J, approx_fprime(x, lambda xx: m.base_from_step(xx, z)[0], eps), rtol=1e-5, atol=1e-7)
     np.testing.assert_allclose(Kz, approx_fprime(z, lambda zz: m.base_from_step(x, zz)[0], 1e-6), rtol=1e-5,
@@ -180,7 +189,7 @@ def test_wind_reset_from_airspeed_jacobians_match_finite_differences(seed):
     # consistency with the airspeed model: the reset wind reproduces the measured airspeed
     xw = x.copy()
     xw[S.wind_ne] = w
-    assert TrueAirspeed().predict(xw)[0] == pytest.approx(tas, rel=1e-9)
+    assert TrueAirspeed(0.25).evaluate(xw)[0] == pytest.approx(tas, rel=1e-9)
     # and the sideslip derivative is the perpendicular direction scaled by the horizontal airspeed
     assert abs(d_beta @ (x[S.vel_ne] - w)) < 1e-9
 
@@ -247,12 +256,47 @@ def test_ideal_imu_dead_reckoning_follows_truth():
 
 
 # --------------------------------------------------------------------------------------------------------------
-def _flying_ekf(cfg: EkfConfig = CFG0) -> NavEkf:
-    ekf = NavEkf(cfg, t_us=0, pos_ned_m=[0.0, 0.0, -100.0], vel_ned_m_s=[20.0, 0.0, 0.0])
+def _flying_ekf(cfg: EkfConfig = CFG0, **kw) -> NavEkf:
+    ekf = NavEkf(cfg, t_us=0, pos_ned_m=[0.0, 0.0, -100.0], vel_ned_m_s=[20.0, 0.0, 0.0], **kw)
     for k in range(1, 21):
         t = k * 5000
         ekf.predict(ImuSample(t, np.zeros(3), G_DOWN_SPECIFIC_FORCE.copy()), AttitudeSample(t, 0.0, 0.0, 0.0))
     return ekf
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class _HeightAboveGround(ModelBase):
+    """A range finder's model: height above the ground under the aircraft, ``-pos_d - terrain_h`` (m)."""
+
+    var_m2: float
+
+    def linearise(self, x: np.ndarray) -> Linearised:
+        h = np.zeros(S.dim)
+        h[S.pos_d] = h[S.terrain_h] = -1.0
+        return Linearised((float(-x[S.pos_d.start] - x[S.terrain_h.start]),), h, None, (self.var_m2,))
+
+
+class _RangeFinderAid(AidSource):
+    """A new sensor is its model, this class and one registration (here the ``aid_sources`` argument)."""
+
+    name = "range"
+    events = {"range": 3}
+
+    def control(self, t_us: int, height_m: float) -> bool:
+        self.fuse(t_us, (height_m,), _HeightAboveGround(0.2**2), 10.83)
+        return True
+
+
+def test_a_new_aid_source_is_one_class_and_one_registration():
+    ekf = _flying_ekf(aid_sources=(*SOURCES, _RangeFinderAid))
+    assert tuple(ekf.status()) == (*AID_SOURCES, "range")
+    var0 = ekf.covariance("terrain_h")[0, 0]
+    ekf.push("range", 100_000, 97.0)                       # 3 m of terrain under the aircraft at 100 m
+    st = ekf.status()["range"]
+    assert st.fused and st.innovation[0] == pytest.approx(97.0 - 100.0, abs=1e-6)
+    assert ekf.covariance("terrain_h")[0, 0] < var0 and ekf.x[S.terrain_h][0] > 0.0
+    ekf.push("range", 50_000, 97.0)                        # behind the filter: refused by the timeline
+    assert ekf.status()["range"].reason == ekf_mod.REASON_LATE
 
 
 def test_non_finite_and_malformed_inputs_are_rejected_and_never_reach_the_state():
@@ -303,10 +347,10 @@ def test_non_finite_and_malformed_inputs_are_rejected_and_never_reach_the_state(
 
 def test_covariance_reset_when_innovation_variance_below_observation_variance():
     ekf = _flying_ekf()
-    P = ekf._kf.P.copy()                      # simulate a covariance that lost positive definiteness
+    P = ekf.P                                 # simulate a covariance that lost positive definiteness
     i = S.pos_d.start
     P[i, i] = -50.0
-    ekf._kf.P = P
+    ekf._core.store(ekf.x, P)
     ekf.fuse_baro(100_000, 100.0)
     st = ekf.status()["baro"]
     assert st.rejected and st.reason == ekf_mod.REASON_COV_RESET
@@ -477,16 +521,15 @@ def test_optical_matcher_sigma_is_at_least_the_ssd_surface_precision():
 def test_joseph_update_keeps_P_symmetric_positive_and_matches_textbook_kalman():
     """One scalar and one 2-D update against the textbook KF on the same linearisation (an independent formula)."""
     ekf = _flying_ekf()
-    for fuse, model, z, R in (
-        (lambda e: e.fuse_baro(100_000, 103.0), BaroAltitude(), np.array([103.0]), BaroAltitude.noise(CFG0)),
-        (lambda e: e.fuse_gnss(100_000, [2.0, -1.0], None), GnssPosition(2), np.array([2.0, -1.0]),
-         GnssPosition(2).noise(CFG0)),
+    for fuse, model, z in (
+        (lambda e: e.fuse_baro(100_000, 103.0), BaroAltitude.from_config(CFG0), np.array([103.0])),
+        (lambda e: e.fuse_gnss(100_000, [2.0, -1.0], None), GnssPosition.from_config(CFG0, 2), np.array([2.0, -1.0])),
     ):
         x, P = ekf.x, ekf.P
         H = model.jacobian(x)
-        Sm = H @ P @ H.T + R
+        Sm = H @ P @ H.T + model.covariance(x)
         K = P @ H.T @ np.linalg.inv(Sm)
-        x_ref = x + K @ (z - model.predict(x))
+        x_ref = x + K @ (z - model.evaluate(x))
         P_ref = (np.eye(S.dim) - K @ H) @ P
         fuse(ekf)
         np.testing.assert_allclose(ekf.x, x_ref, atol=1e-9)
@@ -681,12 +724,12 @@ def test_partial_update_is_the_joseph_form_of_the_scaled_gain():
     assert abs(ekf.P[S.tas_scale.start, S.wind_ne.start]) > 1e-6          # the scale is correlated with the wind
     t = samples[-1][0].t_us
     x, P = ekf.x, ekf.P
-    z_hat, h = TrueAirspeed.row(x)
+    z_hat, h = TrueAirspeed.from_config(cfg, ekf.wind_turb_sigma_m_s**2).linearise(x)[:2]
     H = h[None, :]
     # the airspeed variance: the pitot's plus the turbulence's share at the sigma in use (written out here)
     Rm = np.array([[cfg.tas_sigma_m_s**2 + (cfg.tas_turb_noise_factor * ekf.wind_turb_sigma_m_s) ** 2]])
     K = np.diag(np.where(np.arange(S.dim) == S.tas_scale.start, 0.2, 1.0)) @ P @ H.T @ np.linalg.inv(H @ P @ H.T + Rm)
-    x_ref = x + K[:, 0] * (20.9 - z_hat)
+    x_ref = x + K[:, 0] * (20.9 - z_hat[0])
     I_KH = np.eye(S.dim) - K @ H
     P_ref = I_KH @ P @ I_KH.T + K @ Rm @ K.T
     ekf.fuse_airspeed(t, 20.9)

@@ -82,7 +82,7 @@ def test_vertical_wind_relaxes_to_zero_with_its_correlation_time():
     assert ekf.P[iw, iw] == pytest.approx((0.7 * 1.2) ** 2, rel=1e-12)        # starts at the stationary variance
     x, P = ekf.x, ekf.P
     x[iw], P[iw, iw] = 1.5, 0.01                                                # a known gust, well determined
-    ekf._store(x, P)
+    ekf._core.store(x, P)
     dt_s = 3.0
     _level_north(ekf, 0, round(dt_s * 1e6), tas_m_s=None)
     e = math.exp(-dt_s / cfg.wind_d_corr_time_s)
@@ -173,7 +173,7 @@ def test_airspeed_variance_carries_the_turbulence_level():
     t = _level_north(ekf, 0, 200_000, None)
     from fusion.measurements import TrueAirspeed
 
-    _, h = TrueAirspeed.row(ekf.x)
+    h = TrueAirspeed.from_config(cfg, 0.0).jacobian(ekf.x)[0]
     hph = float(h @ ekf.P @ h)
     ekf.fuse_airspeed(t, 20.0)
     st = ekf.status()["airspeed"]

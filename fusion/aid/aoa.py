@@ -1,0 +1,104 @@
+"""Lift-model angle of attack: the pseudo-measurement fused with every airspeed sample, and its aid source.
+
+With the airspeed and the sideslip it fixes the body-frame air velocity's third component, so the vertical air
+velocity, and with the ground's vertical velocity the vertical wind, which in a bank is sideslip and so
+cross-heading wind (:mod:`fusion.state`, ``wind_d``).  Not fused beyond ``aoa_max_deg`` (stall, or a pull beyond
+the linear lift curve).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+from fusion.aid.air import MIN_AIR_SPEED_M_S, TS, air_angle_row, body_air_velocity
+from fusion.aid.airspeed import REASON_LOW_AIRSPEED
+from fusion.aid.base import AidSource, Mat, ModelBase, Vec
+from fusion.config import EkfConfig
+from fusion.core import Linearised
+from fusion.state import S
+from fusion.status import REASON_NO_ATTITUDE
+
+REASON_AOA_RANGE = "lift-model angle of attack outside aoa_max_deg (lift curve not linear there)"
+
+_BAZ, _AOF = S.accel_bias_b.start + 2, S.aoa_ofs.start
+
+
+@dataclass(frozen=True, slots=True)
+class LiftAngleOfAttack(ModelBase):
+    """Angle-of-attack pseudo-measurement from the lift (rad, ``atan(v_air_b_z / v_air_b_x)``), noise ``var_rad2``.
+
+    The wing's lift is what the accelerometer's normal channel reads: ``-m f_z = q S (C_L0 + C_Lalpha alpha)``
+    (FRD, ``f_z`` about ``-g`` in level flight), so ``alpha = -2 m f_z / (rho S C_Lalpha V^2) - C_L0 / C_Lalpha``,
+    with ``f_z`` low-passed like the sideslip's lateral force and ``V`` the pitot airspeed corrected by the scale
+    state.  The predicted angle uses the AHRS attitude corrected by the heading error, as the sideslip does.  The
+    measured value holds the accelerometer's z bias and whatever offsets the lift model and the AHRS pitch have,
+    so the prediction is ``alpha(x) - accel_gain_rad_per_m_s2 * accel_bias_z + aoa_ofs`` (``accel_gain_rad_per_m_s2``
+    is :attr:`~fusion.config.EkfConfig.aoa_accel_gain_m` over ``V^2``, one model per sample).
+    """
+
+    R_nb_ahrs: Mat
+    accel_gain_rad_per_m_s2: float
+    var_rad2: float
+
+    def linearise(self, x: Vec) -> Linearised:
+        (vbx, _, vbz), (r00, _, r02, r10, _, r12, r20, _, r22), w, cs = body_air_velocity(x, self.R_nb_ahrs)
+        vbx = max(vbx, MIN_AIR_SPEED_M_S)
+        q = 1.0 / (vbx * vbx + vbz * vbz)
+        gx, gz = -vbz * q, vbx * q                           # d atan(vb_z / vb_x) / d(vb_x, vb_z)
+        # d alpha / d w: g_x * body_x + g_z * body_z (columns 0 and 2 of R_nb)
+        h = air_angle_row((gx * r00 + gz * r02, gx * r10 + gz * r12, gx * r20 + gz * r22), w, cs)
+        k = self.accel_gain_rad_per_m_s2
+        h[_BAZ] = -k
+        h[_AOF] = 1.0
+        return Linearised((math.atan2(vbz, vbx) - k * float(x[_BAZ]) + float(x[_AOF]),), h, None, (self.var_rad2,))
+
+    @staticmethod
+    def measured(cfg: EkfConfig, normal_force_m_s2: float, airspeed_m_s: float) -> float:
+        """The lift-model angle of attack (rad) from the low-passed normal specific force (FRD z, m/s^2) and the
+        corrected airspeed (m/s)."""
+        return -cfg.aoa_accel_gain_m * normal_force_m_s2 / (airspeed_m_s * airspeed_m_s) - cfg.aoa_zero_lift_rad
+
+    @staticmethod
+    def variance(cfg: EkfConfig, turb_var_m2_s2: float = 0.0, airspeed_m_s: float = math.inf) -> float:
+        """Measurement variance (rad^2): ``aoa_sigma_rad^2`` plus the vertical turbulence the wind state does not
+        follow, seen as an angle at the airspeed:
+        ``(aoa_turb_noise_factor * wind_d_sigma_ratio * sigma_turb / V)^2``."""
+        return (cfg.aoa_sigma_rad**2
+                + (cfg.aoa_turb_noise_factor * cfg.wind_d_sigma_ratio)**2 * turb_var_m2_s2 / airspeed_m_s**2)
+
+
+class AoaAid(AidSource):
+    """Fuses the lift-model angle of attack with each airspeed sample above ``tas_min_m_s`` (``aoa_fusion``; gate
+    ``gate_aoa_nis``), within ``aoa_max_deg``."""
+
+    name = "aoa"
+    listens: ClassVar[tuple[str, ...]] = ("airspeed",)
+
+    def __init__(self, *args: Any) -> None:
+        super().__init__(*args)
+        self._gain_m = self.cfg.aoa_accel_gain_m if self.cfg.aoa_fusion else 0.0
+        self._max_rad = math.radians(self.cfg.aoa_max_deg)
+
+    def control(self, t_us: int, tas: float) -> bool:
+        c = self.cfg
+        if tas < c.tas_min_m_s:
+            self.row.set(t_us, reason=REASON_LOW_AIRSPEED)
+            return True
+        if not self._gain_m:
+            return True
+        imu = self.ctx.imu
+        R_nb = imu.R_nb()
+        if R_nb is None or math.isnan(imu.nrm_f):
+            self.row.set(t_us, reason=REASON_NO_ATTITUDE)
+            return True
+        v_air = max(tas / (1.0 + float(self.core.x[TS])), c.tas_min_m_s)
+        z_alpha = LiftAngleOfAttack.measured(c, imu.nrm_f, v_air)
+        if abs(z_alpha) > self._max_rad:                  # stall, or a pull beyond the linear lift curve
+            self.row.set(t_us, reason=REASON_AOA_RANGE)
+            return True
+        var = LiftAngleOfAttack.variance(c, self.ctx.process.turb_var, v_air)
+        model = LiftAngleOfAttack(R_nb, self._gain_m / (v_air * v_air), var)
+        self.fuse(t_us, (z_alpha,), model, c.gate_aoa_nis)
+        return True

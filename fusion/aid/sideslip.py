@@ -1,0 +1,92 @@
+"""Synthetic sideslip: the pseudo-measurement fused with every airspeed sample, and its aid source.
+
+In coordinated flight the aircraft points into the relative wind, which together with the airspeed makes the wind
+observable without turns.  The measured value is either 0 (the classic zero-sideslip assumption) or the side-force
+sideslip from the low-passed lateral specific force (``sideslip_side_force_coef_per_rad`` not 0).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import ClassVar
+
+from fusion.aid.air import MIN_AIR_SPEED_M_S, TS, air_angle_row, body_air_velocity
+from fusion.aid.airspeed import REASON_LOW_AIRSPEED
+from fusion.aid.base import AidSource, Mat, ModelBase, Vec
+from fusion.config import EkfConfig
+from fusion.core import Linearised
+from fusion.state import S
+from fusion.status import REASON_NO_ATTITUDE
+
+_BAY, _SFO = S.accel_bias_b.start + 1, S.side_force_ofs.start
+
+
+@dataclass(frozen=True, slots=True)
+class SyntheticSideslip(ModelBase):
+    """Sideslip pseudo-measurement (rad, small-angle ``v_air_b_y / v_air_b_x``) with noise variance ``var_rad2``.
+
+    The air-relative velocity is rotated into the body frame with the AHRS attitude ``R_nb_ahrs`` corrected by the
+    heading error (:mod:`fusion.aid.air`).  With the side-force model the measured value is
+    ``accel_gain_rad_per_m_s2 * f_y`` of the low-passed lateral specific force ``f_y`` (the airframe's side force
+    ``q S C_Ybeta beta = m f_y``: ``beta = 2 m f_y / (rho S C_Ybeta V^2)``, i.e. the gain is
+    :attr:`~fusion.config.EkfConfig.sideslip_accel_gain_m` over ``V^2``).  The accelerometer's bias is in that
+    reading, so with a non-zero gain the prediction is ``beta(x) + accel_gain_rad_per_m_s2 * (accel_bias_y +
+    side_force_ofs)`` (the offset is the part of the reading at zero sideslip that the bias state, shared with the
+    prediction's AHRS tilt error, does not hold: see :mod:`fusion.state`).  The gain changes with each sample's
+    airspeed, so the source builds one model per sample.
+    """
+
+    R_nb_ahrs: Mat
+    accel_gain_rad_per_m_s2: float
+    var_rad2: float
+
+    def linearise(self, x: Vec) -> Linearised:
+        (vbx, vby, _), (r00, r01, _, r10, r11, _, r20, r21, _), w, cs = body_air_velocity(x, self.R_nb_ahrs)
+        vx = max(vbx, MIN_AIR_SPEED_M_S)
+        gx, gy = -vby / (vx * vx), 1.0 / vx                  # d(vb_y / vb_x) / d(vb_x, vb_y)
+        # d beta / d w: g_x * body_x + g_y * body_y (columns 0 and 1 of R_nb)
+        h = air_angle_row((gx * r00 + gy * r01, gx * r10 + gy * r11, gx * r20 + gy * r21), w, cs)
+        k = self.accel_gain_rad_per_m_s2
+        if k:
+            h[_BAY] = h[_SFO] = k
+            return Linearised((vby / vx + k * (float(x[_BAY]) + float(x[_SFO])),), h, None, (self.var_rad2,))
+        return Linearised((vby / vx,), h, None, (self.var_rad2,))
+
+    @staticmethod
+    def variance(cfg: EkfConfig, turb_var_m2_s2: float = 0.0, airspeed_m_s: float = math.inf) -> float:
+        """Measurement variance (rad^2): ``sideslip_sigma_rad^2`` plus the lateral turbulence the wind state does
+        not follow, seen as an angle at the airspeed: ``(sideslip_turb_noise_factor * sigma_turb / V)^2`` (the
+        sideslip's counterpart of :meth:`~fusion.aid.airspeed.TrueAirspeed.variance`)."""
+        return cfg.sideslip_sigma_rad**2 + cfg.sideslip_turb_noise_factor**2 * turb_var_m2_s2 / airspeed_m_s**2
+
+
+class SideslipAid(AidSource):
+    """Fuses the sideslip with each airspeed sample above ``tas_min_m_s`` (``sideslip_fusion``; gate
+    ``gate_sideslip_nis``), at the AHRS attitude of the last IMU sample at or before the stamp."""
+
+    name = "sideslip"
+    listens: ClassVar[tuple[str, ...]] = ("airspeed",)
+
+    def control(self, t_us: int, tas: float) -> bool:
+        c = self.cfg
+        if tas < c.tas_min_m_s:
+            self.row.set(t_us, reason=REASON_LOW_AIRSPEED)
+            return True
+        if not c.sideslip_fusion:
+            return True
+        R_nb = self.ctx.imu.R_nb()
+        if R_nb is None:
+            self.row.set(t_us, reason=REASON_NO_ATTITUDE)
+            return True
+        # the side-force sideslip (measured value) from the lateral specific force and the corrected airspeed;
+        # 0 with the model off (zero sideslip)
+        k_beta, z_beta = 0.0, 0.0
+        v_air = max(tas / (1.0 + float(self.core.x[TS])), c.tas_min_m_s)
+        lat_f = self.ctx.imu.lat_f
+        if c.sideslip_accel_gain_m and not math.isnan(lat_f):
+            k_beta = c.sideslip_accel_gain_m / (v_air * v_air)
+            z_beta = k_beta * lat_f
+        var = SyntheticSideslip.variance(c, self.ctx.process.turb_var, v_air)
+        self.fuse(t_us, (z_beta,), SyntheticSideslip(R_nb, k_beta, var), c.gate_sideslip_nis)
+        return True

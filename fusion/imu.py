@@ -1,0 +1,217 @@
+"""The IMU integrator: sums the IMU samples between covariance predictions and runs them through the process model.
+
+The per-IMU-sample work is a few floating-point additions: samples with the same AHRS attitude are summed as
+``sum f_b dt``, ``sum (omega_b x f_b) dt`` and their first moments ``... dt t_mid`` (``t_mid``: the sample interval's
+midpoint from the start of the prediction); when the attitude changes, or when the covariance is predicted, these
+sums are rotated once by ``R_nb`` into ``sum R_nb f dt``, ``sum R_nb dt``, ``sum R_nb (omega x f) dt`` and their
+moments (:class:`~fusion.process.ImuIncrement`).  The covariance rate is then a free choice: it is predicted at most
+every ``predict_period_s`` while only IMU samples arrive, and once at the stamp of a measurement (all measurements
+with one stamp share it).  The integrator also keeps what the air-data models read from the IMU: the AHRS attitude
+of the last processed sample and the low-passed lateral and normal specific forces.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.constants import g as STANDARD_GRAVITY_M_S2
+
+from common.samples import AttitudeSample
+from fusion.config import EkfConfig
+from fusion.core import FilterCore
+from fusion.process import S_PER_US, US_PER_S, ImuIncrement, ProcessModel, rot_rows
+from fusion.status import REASON_IMU_GAP, StatusRow
+
+Mat = NDArray[np.float64]
+#: One queued IMU sample: stamp (µs), specific force (3, m/s^2), body rates (3, rad/s), FRD, and its attitude.
+ImuEntry = tuple[int, float, float, float, float, float, float, AttitudeSample]
+
+_ACC_LEN = 30           # floats of the accumulated increment (see ImuIntegrator.__init__)
+_SEG_LEN = 14           # floats of an open segment (see ImuIntegrator.__init__)
+
+
+class ImuIntegrator:
+    """Consumes IMU samples up to a time and predicts the filter to it (module docstring).
+
+    ``t_x_us`` is the time of the filter state (the fusion horizon), ``t_in_us`` how far the inputs have been
+    consumed (``>= t_x_us``; the rest is accumulated, to be predicted at the next measurement or period)."""
+
+    def __init__(self, cfg: EkfConfig, core: FilterCore, process: ProcessModel, row: StatusRow, t_us: int) -> None:
+        self._core, self._process, self._row = core, process, row
+        self.t_x_us = self.t_in_us = t_us
+        # The covariance prediction being accumulated over [t_x_us, t_in_us] (ImuIncrement), as floats: sum R f dt
+        # (3), sum R f dt t_mid (3), sum R dt (9, row by row), sum R dt t_mid (9), sum R (w x f) dt (3), sum R (w x f)
+        # dt t_mid (3).  Python floats throughout the per-sample path: a NumPy call on a 3-vector costs more than the
+        # arithmetic.
+        self._acc = [0.0] * _ACC_LEN
+        # the open segment of samples under the attitude _Rl: sum f dt (3), sum f dt t_mid (3), sum dt,
+        # sum dt t_mid, sum (w x f) dt (3), sum (w x f) dt t_mid (3) (rotated into _acc when the attitude changes or
+        # the covariance is predicted)
+        self._seg = [0.0] * _SEG_LEN
+        self._seg_open = False
+        # specific force (FRD) and gyro rate x specific force of the last IMU sample
+        self._f_held: tuple[float, float, float, float, float, float] | None = None
+        self.rates_held = (0.0, 0.0, 0.0)                #: body rates of the last IMU sample (rad/s, FRD)
+        #: lateral specific force (body y, m/s^2), low-passed over sideslip_accel_tau_s (NaN before any sample)
+        self.lat_f = math.nan
+        self.nrm_f = math.nan                            #: normal specific force (body z, m/s^2), low-passed alike
+        self._lat_rate_per_s = 1.0 / cfg.sideslip_accel_tau_s if cfg.sideslip_accel_tau_s > 0.0 else math.inf
+        self.att: AttitudeSample | None = None           #: AHRS attitude of the last processed IMU sample
+        self._att_out: AttitudeSample | None = None      # newest pushed attitude (output before any is processed)
+        self._Rl: tuple[float, ...] | None = None        # its rotation (body to AHRS-NED), row by row
+        self._R_nb: Mat | None = None                    # the same as a matrix (built when a model needs it)
+        self._period_us = round(cfg.predict_period_s * US_PER_S)
+        self._gap_us = round(cfg.imu_max_gap_s * US_PER_S)
+        #: bumped whenever what the output reads from the IMU (attitude, rates) changes
+        self.version = 0
+
+    def output_attitude(self) -> AttitudeSample | None:
+        """The attitude the output heading uses: the last processed one, or the newest pushed before that."""
+        return self.att if self.att is not None else self._att_out
+
+    def pushed(self, att: AttitudeSample) -> None:
+        """A sample with attitude ``att`` entered the queue."""
+        if self.att is None:
+            self._att_out = att             # heading for the output until the horizon reaches an IMU sample
+            self.version += 1
+
+    def R_nb(self) -> Mat | None:
+        """Body-to-AHRS-NED rotation of the last processed IMU sample (``None`` before one)."""
+        if self._R_nb is None and self._Rl is not None:
+            self._R_nb = np.array(self._Rl).reshape(3, 3)
+        return self._R_nb
+
+    # ----------------------------------------------------------------------------------------------------------
+    def run(self, q: deque[ImuEntry], t_end: int) -> None:
+        """Process the queued IMU samples stamped at or before ``t_end``, in order.  Each sample covers the interval
+        since the previous one with its own specific force, body rates and attitude: it is added to the open segment
+        (a new attitude closes the segment first, :meth:`_fold`), and the covariance is predicted once
+        ``predict_period_s`` has accumulated.  One loop over local floats: this is the per-sample path."""
+        s0, s1, s2, s3, s4, s5, s6, s7, s8, s9, s10, s11, s12, s13 = self._seg
+        opened, t_in, t_x, a0 = self._seg_open, self.t_in_us, self.t_x_us, self.att
+        n_fused = self._row.n_fused
+        gap = False
+        fx = fy = fz = gx = gy = gz = 0.0
+        lat, lat_rate, nrm = self.lat_f, self._lat_rate_per_s, self.nrm_f
+        if math.isnan(lat) and q:
+            lat, nrm = q[0][2], q[0][3]                   # the low-passes start at the first sample's f_y, f_z
+        t = t_in
+        while q and q[0][0] <= t_end:
+            t, fx, fy, fz, gx, gy, gz, att = q.popleft()
+            if att is not a0:
+                if (a0 is None or att.yaw_rad != a0.yaw_rad or att.roll_rad != a0.roll_rad
+                        or att.pitch_rad != a0.pitch_rad):
+                    if opened:
+                        self._seg = [s0, s1, s2, s3, s4, s5, s6, s7, s8, s9, s10, s11, s12, s13]
+                        self._fold()
+                        s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = s8 = s9 = s10 = s11 = s12 = s13 = 0.0
+                        opened = False
+                    self._Rl = rot_rows(att.roll_rad, att.pitch_rad, att.yaw_rad)
+                    self._R_nb = None
+                    self.version += 1      # the output heading follows the AHRS
+                a0 = att
+            wx, wy, wz = gy * fz - gz * fy, gz * fx - gx * fz, gx * fy - gy * fx     # omega x f (body)
+            dt_us = t - t_in
+            gap = dt_us > self._gap_us and n_fused > 0
+            n_fused += 1
+            if dt_us > 0:
+                dt = dt_us * S_PER_US
+                k_lp = min(1.0, dt * lat_rate)
+                lat += (fy - lat) * k_lp
+                nrm += (fz - nrm) * k_lp
+                mid = (t + t_in - 2 * t_x) * (0.5 * S_PER_US)
+                ax, ay, az = fx * dt, fy * dt, fz * dt
+                s0, s1, s2, s3, s4, s5 = s0 + ax, s1 + ay, s2 + az, s3 + ax * mid, s4 + ay * mid, s5 + az * mid
+                s6, s7 = s6 + dt, s7 + dt * mid
+                ax, ay, az = wx * dt, wy * dt, wz * dt
+                s8, s9, s10 = s8 + ax, s9 + ay, s10 + az
+                s11, s12, s13 = s11 + ax * mid, s12 + ay * mid, s13 + az * mid
+                opened = True
+                t_in = t
+                if t_in - t_x >= self._period_us:
+                    self._seg = [s0, s1, s2, s3, s4, s5, s6, s7, s8, s9, s10, s11, s12, s13]
+                    self._seg_open, self.t_in_us = opened, t_in
+                    self._flush()
+                    s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = s8 = s9 = s10 = s11 = s12 = s13 = 0.0
+                    opened = False
+                    t_x = self.t_x_us
+        self._seg = [s0, s1, s2, s3, s4, s5, s6, s7, s8, s9, s10, s11, s12, s13]
+        self._seg_open, self.t_in_us, self.att, self.lat_f, self.nrm_f = opened, t_in, a0, lat, nrm
+        if n_fused != self._row.n_fused:
+            self._ran(t, n_fused, gap, (fx, fy, fz), (gx, gy, gz))
+
+    def _ran(self, t: int, n_fused: int, gap: bool, f: tuple[float, float, float],
+             rates: tuple[float, float, float]) -> None:
+        """Samples up to ``t`` were processed: hold the last one's specific force and rates; the ``imu`` status."""
+        fx, fy, fz = f
+        gx, gy, gz = self.rates_held = rates
+        self._f_held = (fx, fy, fz, gy * fz - gz * fy, gz * fx - gx * fz, gx * fy - gy * fx)
+        self.version += 1                     # the output heading uses the newest body rates
+        self._row.fused_again(t, n_fused)
+        if gap:
+            self._row.reason = REASON_IMU_GAP
+
+    def _fold(self) -> None:
+        """Rotate the open segment's sums by its attitude into the prediction's increment."""
+        f0, f1, f2, n0, n1, n2, sdt, sdm, k0, k1, k2, j0, j1, j2 = self._seg
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = self._Rl   # type: ignore[misc]
+        a = self._acc
+        a[0] += r00 * f0 + r01 * f1 + r02 * f2
+        a[1] += r10 * f0 + r11 * f1 + r12 * f2
+        a[2] += r20 * f0 + r21 * f1 + r22 * f2
+        a[3] += r00 * n0 + r01 * n1 + r02 * n2
+        a[4] += r10 * n0 + r11 * n1 + r12 * n2
+        a[5] += r20 * n0 + r21 * n1 + r22 * n2
+        for i, r in enumerate((r00, r01, r02, r10, r11, r12, r20, r21, r22)):
+            a[6 + i] += r * sdt                           # sum R dt, row by row
+            a[15 + i] += r * sdm                          # sum R dt t_mid
+        a[24] += r00 * k0 + r01 * k1 + r02 * k2
+        a[25] += r10 * k0 + r11 * k1 + r12 * k2
+        a[26] += r20 * k0 + r21 * k1 + r22 * k2
+        a[27] += r00 * j0 + r01 * j1 + r02 * j2
+        a[28] += r10 * j0 + r11 * j1 + r12 * j2
+        a[29] += r20 * j0 + r21 * j1 + r22 * j2
+        self._seg = [0.0] * _SEG_LEN
+        self._seg_open = False
+
+    def _flush(self) -> None:
+        """Predict the state and covariance over everything consumed: the filter time becomes ``t_in_us``."""
+        if self._seg_open:
+            self._fold()
+        T_us = self.t_in_us - self.t_x_us
+        if T_us > 0:
+            a = self._acc
+            inc = ImuIncrement(T_us * S_PER_US, a[0:3], [a[6:9], a[9:12], a[12:15]], a[3:6],
+                               [a[15:18], a[18:21], a[21:24]], a[24:27], a[27:30])
+            core = self._core
+            x_new, Q, add_var = self._process.step(core.x, core.P, inc)
+            core.predict(x_new, self._process.F, Q, add_var)
+            self._acc = [0.0] * _ACC_LEN
+            self.t_x_us = self.t_in_us
+
+    def predict_to(self, t: int) -> None:
+        """Bring the state to ``t`` (>= the inputs consumed) in one prediction: the consumed samples plus the last
+        sample held (zero-order hold) from its stamp to ``t``; before the first IMU sample the velocity is held."""
+        t_in = self.t_in_us
+        dt_us = t - t_in
+        if dt_us > 0:
+            dt = dt_us * S_PER_US
+            mid = (t + t_in - 2 * self.t_x_us) * (0.5 * S_PER_US)
+            if self._f_held is not None:
+                seg = self._seg
+                for k, v in enumerate(self._f_held):          # f (0-2) and omega x f (3-5) of the held sample
+                    o = k if k < 3 else k + 5                    # their sums' places in the segment
+                    seg[o] += v * dt
+                    seg[o + 3] += v * dt * mid
+                seg[6] += dt
+                seg[7] += dt * mid
+                self._seg_open = True
+            else:                          # no IMU yet: a specific force of exactly -g (velocity held)
+                g_dt = -STANDARD_GRAVITY_M_S2 * dt
+                self._acc[2] += g_dt
+                self._acc[5] += g_dt * mid
+            self.t_in_us = t
+        self._flush()
