@@ -104,7 +104,8 @@ class GnssSample:
     ``v_acc_m_s`` are the receiver's 1-sigma accuracies of one horizontal position axis and one velocity axis,
     ``alt_acc_m`` of the vertical position (``nan`` when unknown, ``inf`` without a fix); ``n_sats`` is -1 when
     unknown.  ``lat_deg``, ``lon_deg``, ``alt_msl_m`` are the fix as logged (``nan`` in the simulator).
-    ``fix_type`` is MAVLink's GPS_FIX_TYPE where the source gives it (-1 otherwise).  Components a source does not give are NaN.
+    ``fix_type`` is MAVLink's GPS_FIX_TYPE where the source gives it (-1 otherwise).  Components a source does not
+    give are NaN.
     """
 
     t_us: int
