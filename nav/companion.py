@@ -359,7 +359,7 @@ class CompanionEstimator:
             air_sigma = math.sqrt(float(np.max(np.asarray(e.wind_ne_sigma_m_s, dtype=float)[:2])) ** 2
                                   + pipe.ekf_cfg.tas_sigma_m_s ** 2 + (tas * float(e.heading_sigma_rad)) ** 2)
         return Consistency(pred_pos_ne_m=np.asarray(e.pos_ne_m, dtype=float)[:2], pred_pos_sigma_m=pos_sigma,
-                           air_vel_ne_m_s=air_vel, air_vel_sigma_m_s=air_sigma)
+                           air_vel_ne_m_s=air_vel, air_vel_sigma_m_s=air_sigma, tas_m_s=float(tas))
 
     @property
     def quality(self) -> float:
@@ -374,11 +374,15 @@ class CompanionEstimator:
             return OutputEstimate(t_us, False, nan, nan, nan, z2, np.full((2, 2), nan), z2, np.full((2, 2), nan),
                                   nan, self.quality, int(self.monitor.state), reason=self.pipe.why_no_estimate(),
                                   home_amsl_m=self.home_amsl_m)
-        return estimate_to_output(e, int(self.monitor.state), self.quality, self.home_amsl_m)
+        return estimate_to_output(e, int(self.monitor.state), self.quality, self.home_amsl_m, self.pipe.attitude)
 
 
-def estimate_to_output(e: Any, gnss_state: int, quality: float, home_amsl_m: float = math.nan) -> OutputEstimate:
-    """Map :class:`fusion.ekf.NavEstimate` onto what the link sends."""
+def estimate_to_output(e: Any, gnss_state: int, quality: float, home_amsl_m: float = math.nan,
+                       attitude: AttitudeSample | None = None) -> OutputEstimate:
+    """Map :class:`fusion.ekf.NavEstimate` onto what the link sends (``attitude``: the last AHRS sample, whose roll
+    and pitch put the velocity into the body frame)."""
+    nan = math.nan
+    roll, pitch = (attitude.roll_rad, attitude.pitch_rad) if attitude is not None else (nan, nan)
     vel = np.asarray(e.vel_ned_m_s, dtype=float)
     vs = np.asarray(e.vel_ned_sigma_m_s, dtype=float)
     ws = np.asarray(e.wind_ne_sigma_m_s, dtype=float)
@@ -390,7 +394,8 @@ def estimate_to_output(e: Any, gnss_state: int, quality: float, home_amsl_m: flo
         ata_rad=float(e.ata_rad), vel_ne_m_s=vel[:2].copy(), vel_cov_ne=vel_cov,
         wind_ne_m_s=np.asarray(e.wind_ne_m_s, dtype=float)[:2].copy(), wind_cov_ne=wind_cov,
         height_agl_m=float(e.height_agl_m), quality=quality, gnss_state=gnss_state, vel_d_m_s=float(vel[2]),
-        vel_d_var=float(vs[2] ** 2), reason=str(e.invalid_reason), home_amsl_m=home_amsl_m)
+        vel_d_var=float(vs[2] ** 2), reason=str(e.invalid_reason), home_amsl_m=home_amsl_m, roll_rad=float(roll),
+        pitch_rad=float(pitch), heading_rad=float(e.heading_rad))
 
 
 # ------------------------------------------------------------------------------------------------ the app
@@ -541,6 +546,8 @@ class Companion:
                 self._reject_frame("no clock sync with the vehicle yet")
                 return
             t_us = t_us + sync.offset_us
+        else:  # the companion's clock onto the samples' (the autopilot's) clock
+            t_us = self.link.from_companion_us(t_us)
         gray, why = check_frame(frame, self.camera)
         if gray is None:
             self._reject_frame(why)
@@ -553,7 +560,7 @@ class Companion:
             self._reject_frame("frozen frame (identical to the previous one)")
             return
         self._last_crc = crc
-        if capture_us - t_us > self.cfg.max_frame_age_s * 1e6:
+        if self.link.now_us() - t_us > self.cfg.max_frame_age_s * 1e6:
             self.counters.frames_stale += 1
             return
         self._last_frame_t_us = t_us
@@ -609,7 +616,7 @@ class Companion:
                               "latency_us": sent_us - capture_us if capture_us is not None else None})
 
     def _output(self) -> OutputEstimate:
-        return self.estimator.output(now_us())
+        return self.estimator.output(self.link.now_us())
 
     def _validity_changed(self, valid: bool, reason: str) -> None:
         first = self._was_valid is None
@@ -703,7 +710,7 @@ class Companion:
                 self._ensure_link()
                 self._drain_telemetry()
                 self._gcs_commands()
-                for ann in self.estimator.tick(now_us()):
+                for ann in self.estimator.tick(self.link.now_us()):
                     self._announce(ann.t_us, ann.old, ann.new, ann.reason, ann.text)
                 self._handle_results()
                 item = self.camera_thread.latest(poll_s if self.pipe.frames_pending else frame_wait_s)
@@ -711,7 +718,7 @@ class Companion:
                     self._drain_telemetry()
                     self._take_frame(item)
                 if time.monotonic() - self._last_output >= self._output_period_s:
-                    self._outputs(now_us(), None)
+                    self._outputs(self.link.now_us(), None)
                 if now - last_house >= min(1.0, self.cfg.log_flush_s):
                     last_house = now
                     self._housekeeping()

@@ -3,12 +3,24 @@
 Each GNSS report is graded on its own (the *instant* level):
 
 * ``DENIED``: no 3-D fix, fewer than ``min_sats_denied`` satellites, horizontal accuracy worse than
-  ``hacc_denied_m``, non-finite numbers, or a **position jump**: the reported position is farther from the EKF's
-  prediction than ``max(jump_min_m, jump_sigma * sigma)`` (a spoofer walking or jumping the solution);
+  ``hacc_denied_m``, non-finite numbers, or a **position jump**: a step in the receiver's own track, the fix
+  farther than ``max(track_gate_m, track_sigma * sigma)`` from the previous fix advanced by the mean of the two
+  fixes' velocities (the air-data velocity where the receiver gives none; no check after a gap of
+  ``track_max_gap_s``).  After a jump the fixes stay ``DENIED`` while they are farther from the EKF's prediction
+  than ``max(jump_min_m, jump_sigma * sigma)`` (a spoofer that jumped the solution and now moves it smoothly), at
+  most ``jump_max_hold_s``: the receiver is judged again on its own when the estimate and the new track agree
+  (the EKF's position sigma grows while GNSS is withheld, so the gate widens) or that time has passed;
 * ``DEGRADED``: fewer than ``min_sats_ok`` satellites, accuracy worse than ``hacc_ok_m``, or a **velocity
   disagreement**: the GNSS ground velocity differs from the air-data velocity (true airspeed along the heading
-  plus the EKF's wind) by more than ``max(vel_min_m_s, vel_sigma * sigma)``;
+  plus the EKF's wind) by more than ``max(vel_min_m_s, vel_sigma * sigma)``, checked only while the true airspeed
+  is at least ``vel_check_min_tas_m_s`` (on the ground and in the take-off roll the pitot says nothing of the
+  ground speed);
 * ``OK`` otherwise.
+
+An estimate that drifted away from a receiver whose track is consistent (the EKF on the runway, ArduPlane's
+take-off roll) is never a jump: only the receiver's own track can jump, so the fixes keep reaching the EKF, which
+resets to them after ``gnss_reset_after_s`` of rejection.  A spoofer walking the solution off slowly is the
+velocity check's to catch.
 
 No report for ``timeout_s`` is ``DENIED`` (jamming usually just silences the receiver).
 
@@ -56,6 +68,11 @@ class GnssMonitorConfig(Validated):
     hacc_denied_m: Annotated[float, In(0.0, 1e5, lo_open=True)] = 20.0
     jump_min_m: Annotated[float, In(0.0, 1e5)] = 50.0
     jump_sigma: Annotated[float, In(0.0, 1e3)] = 5.0
+    track_gate_m: Annotated[float, In(0.0, 1e5)] = 20.0
+    track_sigma: Annotated[float, In(0.0, 1e3)] = 5.0
+    track_max_gap_s: Annotated[float, In(0.0, 600.0, lo_open=True)] = 5.0
+    jump_max_hold_s: Annotated[float, In(0.0, 86400.0)] = 300.0
+    vel_check_min_tas_m_s: Annotated[float, In(0.0, 1e3)] = 8.0
     vel_min_m_s: Annotated[float, In(0.0, 1e3)] = 5.0
     vel_sigma: Annotated[float, In(0.0, 1e3)] = 4.0
     timeout_s: Annotated[float, In(0.01, 600.0)] = 1.5
@@ -73,12 +90,14 @@ class Consistency:
     """What the EKF and air data expect at the report's time (any part may be ``None``: that check is skipped).
 
     ``pred_pos_ne_m`` with one-sigma ``pred_pos_sigma_m``; ``air_vel_ne_m_s`` (TAS along the heading + wind) with
-    one-sigma ``air_vel_sigma_m_s``."""
+    one-sigma ``air_vel_sigma_m_s``, from the true airspeed ``tas_m_s`` (NaN: not known, the velocity check then
+    runs at any airspeed)."""
 
     pred_pos_ne_m: NDArray[np.float64] | None = None
     pred_pos_sigma_m: float = 0.0
     air_vel_ne_m_s: NDArray[np.float64] | None = None
     air_vel_sigma_m_s: float = 0.0
+    tas_m_s: float = math.nan
 
 
 @dataclass(frozen=True, slots=True)
@@ -115,6 +134,37 @@ class GnssMonitor:
         self._cand: GnssState | None = None
         self._cand_since_us = 0
         self.counts = {s.name: 0 for s in GnssState}
+        self._track: tuple[int, NDArray[np.float64], NDArray[np.float64] | None, float] | None = None
+        self._jump_since_us: int | None = None
+        self.jumps = 0
+
+    def _held(self, s: GnssSample, pos: NDArray[np.float64], expect: Consistency | None) -> float | None:
+        """The fix's distance from the estimate while a jump holds it off (module docstring), else None."""
+        c = self.config
+        if (self._jump_since_us is None or (s.t_us - self._jump_since_us) / 1e6 >= c.jump_max_hold_s
+                or expect is None or not _finite(expect.pred_pos_ne_m) or not math.isfinite(expect.pred_pos_sigma_m)):
+            return None
+        off = float(np.hypot(*(pos - expect.pred_pos_ne_m)))  # type: ignore[operator]
+        return off if off > max(c.jump_min_m, c.jump_sigma * expect.pred_pos_sigma_m) else None
+
+    def _track_step_m(self, s: GnssSample, pos: NDArray[np.float64], vel: NDArray[np.float64] | None,
+                      expect: Consistency | None) -> tuple[float, float] | None:
+        """(distance of the fix from the previous fix advanced by the mean velocity, its gate), or None when the
+        track cannot tell (no previous fix, a gap, no velocity)."""
+        c = self.config
+        if self._track is None:
+            return None
+        t0, p0, v0, hacc0 = self._track
+        dt = (s.t_us - t0) / 1e6
+        if not 0.0 < dt <= c.track_max_gap_s:
+            return None
+        air = expect.air_vel_ne_m_s if expect is not None and _finite(expect.air_vel_ne_m_s) else None
+        vels = [v for v in (v0, vel) if v is not None] or ([air] if air is not None else [])
+        if not vels:
+            return None
+        pred = p0 + np.mean(vels, axis=0) * dt
+        sig = math.hypot(*(h if math.isfinite(h) else 0.0 for h in (hacc0, s.h_acc_m)))
+        return float(np.hypot(*(pos - pred))), max(c.track_gate_m, c.track_sigma * sig)
 
     def grade(self, s: GnssSample, expect: Consistency | None = None) -> tuple[GnssState, str]:
         """The instant level of one fix and why (no state change).  A component the receiver did not report is
@@ -131,18 +181,20 @@ class GnssMonitor:
         pos, vel = _ne(s.pos_ned_m), _ne(s.vel_ned_m_s)
         if pos is None:
             return GnssState.GNSS_DENIED, "non-finite position"
-        if expect is not None and _finite(expect.pred_pos_ne_m) and math.isfinite(expect.pred_pos_sigma_m):
-            jump = float(np.hypot(*(pos - expect.pred_pos_ne_m)))  # type: ignore[operator]
-            gate = max(c.jump_min_m, c.jump_sigma * expect.pred_pos_sigma_m)
-            if jump > gate:
-                return GnssState.GNSS_DENIED, f"position jump {jump:.0f} m > {gate:.0f} m (spoofing?)"
+        step = self._track_step_m(s, pos, vel, expect)
+        if step is not None and step[0] > step[1]:
+            return GnssState.GNSS_DENIED, f"position jump {step[0]:.0f} m > {step[1]:.0f} m in the track (spoofing?)"
+        held = self._held(s, pos, expect)
+        if held is not None:
+            return GnssState.GNSS_DENIED, f"{held:.0f} m from the estimate since a position jump"
         level, why = GnssState.GNSS_OK, "3D fix"
         if s.n_sats < c.min_sats_ok:
             level, why = GnssState.GNSS_DEGRADED, f"{s.n_sats} satellites < {c.min_sats_ok}"
         elif math.isfinite(s.h_acc_m) and s.h_acc_m > c.hacc_ok_m:
             level, why = GnssState.GNSS_DEGRADED, f"accuracy {s.h_acc_m:.1f} m > {c.hacc_ok_m} m"
         if (expect is not None and vel is not None and _finite(expect.air_vel_ne_m_s)
-                and math.isfinite(expect.air_vel_sigma_m_s)):
+                and math.isfinite(expect.air_vel_sigma_m_s)
+                and not expect.tas_m_s < c.vel_check_min_tas_m_s):  # NaN: unknown airspeed, checked
             dv = float(np.hypot(*(vel - expect.air_vel_ne_m_s)))  # type: ignore[operator]
             gate = max(c.vel_min_m_s, c.vel_sigma * expect.air_vel_sigma_m_s)
             if dv > gate:
@@ -158,7 +210,20 @@ class GnssMonitor:
         level, why = self.grade(report, expect)
         self.last_level, self.last_reason = level, why
         self.counts[level.name] += 1
+        self._follow_track(report, why, expect)
         return self._advance(report.t_us, level, why)
+
+    def _follow_track(self, s: GnssSample, why: str, expect: Consistency | None) -> None:
+        """The track the next fix is judged against, and the jump hold (module docstring)."""
+        pos, vel = _ne(s.pos_ned_m), _ne(s.vel_ned_m_s)
+        if pos is None or not s.fix_ok:
+            return
+        if why.startswith("position jump"):
+            self.jumps += 1
+            self._jump_since_us = s.t_us
+        elif self._jump_since_us is not None and self._held(s, pos, expect) is None:
+            self._jump_since_us = None  # the estimate and the track agree again (or the hold is over)
+        self._track = (s.t_us, pos, vel, s.h_acc_m)
 
     def tick(self, t_us: int) -> list[Announcement]:
         """Check the report timeout at ``t_us`` (call at the companion's loop rate)."""

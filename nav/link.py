@@ -1,33 +1,69 @@
 """The companion's link to the autopilot through MAVSDK 4 (native binding, asyncio API).
 
-Inputs (MAVSDK streams unless noted), each validated (finite, physically plausible, time not going backwards)
-before it becomes a timestamped sample; rejected samples are counted per kind and per reason, never raised:
+Inputs (MAVSDK ``MavlinkDirect`` subscriptions), each validated (finite, physically plausible, time not going
+backwards) before it becomes a timestamped sample; rejected samples are counted per kind and per reason, never
+raised.  Of each kind the first message of its list below that arrives is used; a later one of the list only while
+none before it has arrived for ``source_timeout_s`` (ArduPlane streams RAW_IMU, SCALED_IMU2 and SCALED_IMU3
+together: one IMU stream reaches the estimator, not three):
 
-==================  ==============================================  =======================================
-sample              source                                          becomes
-==================  ==============================================  =======================================
-attitude            ``telemetry.subscribe_attitude_euler``           :class:`common.samples.AttitudeSample`
-IMU                 ``telemetry.subscribe_scaled_imu`` (SCALED_IMU)  :class:`common.samples.ImuSample`
-airspeed            ``telemetry.subscribe_fixedwing_metrics``        :class:`common.samples.AirspeedSample` (VFR_HUD)
-baro                ``telemetry.subscribe_scaled_pressure``          :class:`common.samples.BaroSample` (ISA)
-GNSS                ``MavlinkDirect`` GPS_RAW_INT (one message with  :class:`common.samples.GnssSample`
-                    fix type, satellites, accuracy and velocity;
-                    MAVSDK's telemetry splits them over two streams)
-home elevation      ``telemetry.subscribe_position``                 :class:`HomeReading`
-external tracker    ``MavlinkDirect`` CAMERA_TRACKING_IMAGE_STATUS   :class:`TrackReading` (an image tracker's
-                    (a video tracker's target point, normalised)     point, for :class:`nav.tracker.ExternalTracker`)
-==================  ==============================================  =======================================
+=========  ===================================================  ==============================================
+kind       messages, in order of preference                     becomes
+=========  ===================================================  ==============================================
+attitude   ATTITUDE; ATTITUDE_QUATERNION (PX4)                  :class:`common.samples.AttitudeSample`
+IMU        HIGHRES_IMU (PX4; ArduPilot when asked: float SI),   :class:`common.samples.ImuSample`
+           SCALED_IMU (mG, mrad/s), RAW_IMU (ArduPilot sends
+           it scaled as SCALED_IMU: ``raw_imu_accel_scale`` and
+           ``raw_imu_gyro_scale``), SCALED_IMU2, SCALED_IMU3
+baro       SCALED_PRESSURE (ISA pressure altitude); ALTITUDE    :class:`common.samples.BaroSample`
+           (PX4, ``altitude_monotonic``)
+airspeed   VFR_HUD ``airspeed``: ArduPilot's equivalent         :class:`common.samples.AirspeedSample` (true
+           airspeed (PX4: calibrated), made true with the air   airspeed, with the EAS it came from)
+           density of the last baro pressure and temperature
+           (``air_temperature``: :func:`true_airspeed_m_s`)
+GNSS       GPS_RAW_INT (fix type, satellites, accuracy and      :class:`common.samples.GnssSample`
+           velocity in one message)
+home       GLOBAL_POSITION_INT (``alt - relative_alt``)         :class:`HomeReading`
+tracker    CAMERA_TRACKING_IMAGE_STATUS (a video tracker's      :class:`TrackReading` (for
+           target point, normalised)                            :class:`nav.tracker.ExternalTracker`)
+=========  ===================================================  ==============================================
 
-Time: every sample is stamped on the companion's monotonic clock (``t_us``).  Messages that carry the vehicle's
-boot time are mapped through :class:`ClockSync` (offset = the smallest observed receive-minus-send difference, i.e.
-the least-delayed packet), so that attitude can be matched to a camera frame's exposure time.
+Rates: on connecting (and again whenever the link comes back) the link asks for each kind's first message at
+``rate_*_hz`` with MAV_CMD_SET_MESSAGE_INTERVAL and reads the COMMAND_ACK.  A refused rate (ArduPlane refuses more
+than 0.8 x ``SCHED_LOOP_RATE``: 40 Hz at its default 50) is asked again at ``rate_fallback`` times itself, down to
+``rate_min_fraction`` of the wanted rate; then the kind's next message is asked for.  What was granted is logged,
+kept in ``LinkStats.rates_granted`` and told to the ground station in one STATUSTEXT (:func:`rates_text`).
+ArduPlane streams every message at 1 Hz unless asked: without these requests nothing usable arrives.
+
+Time: every sample carries the autopilot's clock (``time_boot_ms``/``time_usec``); VFR_HUD and
+CAMERA_TRACKING_IMAGE_STATUS, which carry none, carry the newest autopilot stamp received (ArduPilot sends a loop's
+messages together).  The samples' ``t_us`` is that clock shifted by one offset (:class:`LinkClock`), chosen at the
+first stamp so that it starts at the companion's monotonic clock and constant afterwards (per kind re-chosen only
+when the autopilot's clock jumps back, a reboot): the estimator runs on the autopilot's time, at its rate (a SITL
+at ``--speedup 5`` runs five times faster than the companion's clock, and so must the estimator's physics).  The
+companion's own clock (a camera's capture time) is mapped onto it with the offset of the least-delayed attitude
+packet (:class:`ClockSync`); the outputs are stamped back on the autopilot's clock.
 
 Outputs (only while the estimate passes :func:`check_estimate`; otherwise nothing of the estimate is sent and the
 reason is returned and logged): drift and ATA as NAMED_VALUE_FLOAT (``GSOE_DRIFT``, ``GSOE_ATA`` in degrees) or one
-DEBUG_VECT ``GSOE`` (x drift deg, y ATA deg, z quality), through ``MavlinkDirect``; ground velocity as
-VISION_SPEED_ESTIMATE with its 3x3 covariance through MAVSDK ``mocap`` (what ArduPilot EKF3 takes as
-external-navigation velocity); wind as WIND_COV (MAVSDK's own telemetry reads wind from it) and ArduPilot's WIND
-(Mission Planner's HUD), both through ``MavlinkDirect``; STATUSTEXT.  The status named values ``GSOE_Q`` (optical
+DEBUG_VECT ``GSOE`` (x drift deg, y ATA deg, z quality), through ``MavlinkDirect``; ground velocity for the
+autopilot's EKF as one of (``velocity_message``, :func:`encode_velocity`):
+
+- ``vision_position_delta``: VISION_POSITION_DELTA, the ground velocity in the body frame (FRD) times the time since
+  the last one.  The heading-aligned velocity (ground speed along the drift angle, what the optical migration
+  measures) is put into the body frame with the AHRS roll and pitch only, so it carries no heading: ArduPilot's EKF3
+  fuses it as body-frame odometry with its own attitude (its heading stays the compass's and IMU's).  Its noise is
+  ArduPilot's ``EK3_VIS_VERR_MIN + (EK3_VIS_VERR_MAX - EK3_VIS_VERR_MIN) (1 - confidence / 100)``: the confidence
+  sent makes that the estimate's sigma (``ap_vis_verr_*_m_s`` must mirror the autopilot's parameters).
+- ``vision_speed_estimate``: VISION_SPEED_ESTIMATE, the north/east/down velocity with its 3x3 covariance (through
+  MAVSDK ``mocap``); ArduPilot fuses it with ``VISO_VEL_M_NSE``, not the covariance.  North/east are made with the
+  autopilot's own yaw (less the estimated yaw bias), so it returns the autopilot's heading to it.
+- ``odometry``: ODOMETRY, ``frame_id`` MAV_FRAME_LOCAL_FRD, ``child_frame_id`` MAV_FRAME_BODY_FRD, the same body-frame
+  velocity with its covariance, the attitude quaternion with the estimate's heading, no position (NaN).  PX4 fuses
+  the body velocity with its own attitude (``EKF2_EV_CTRL`` bit 2); ArduPilot turns it to north/east with the
+  quaternion sent (as VISION_SPEED_ESTIMATE) and fuses it with ``VISO_VEL_M_NSE``.
+
+Wind as WIND_COV (MAVSDK's own telemetry reads wind from it) and ArduPilot's WIND (Mission Planner's HUD), both
+through ``MavlinkDirect``; STATUSTEXT.  The status named values ``GSOE_Q`` (optical
 quality 0..1), ``GSOE_GNSS`` (:class:`nav.gnss_monitor.GnssState`) and ``GSOE_VALID`` (1 while the estimate is
 sent, 0 while it is withheld) are sent at the named-value rate whether the estimate is valid or not: they are
 what a ground station needs to show *why* nothing else arrives.  Each output has a rate and an on/off switch in
@@ -64,8 +100,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from common.angles import wrap_360
-from common.config import In, Validated
+from common.config import In, Validated, require
 from common.samples import AirspeedSample, AttitudeSample, BaroSample, GnssSample, ImuSample
+from gsoe.rotation import R_nb_from_euler
 from nav.gnss_monitor import GPS_FIX_TYPE_3D
 
 log = logging.getLogger(__name__)
@@ -81,15 +118,43 @@ ISA_T0_K = 288.15
 ISA_LAPSE_K_M = 0.0065
 ISA_EXP = 5.25588
 EARTH_RADIUS_M = 6371008.8
+R_AIR_J_KG_K = 287.05          # specific gas constant of dry air
+RHO0_KG_M3 = 1.225             # ISA sea-level density: EAS = TAS sqrt(rho / RHO0)
+CELSIUS_TO_KELVIN = 273.15
+GRAVITY_M_S2 = 9.80665
 MAV_COMP_ID_ONBOARD_COMPUTER = 191
+MAV_CMD_SET_MESSAGE_INTERVAL = 511
+MAV_RESULT_ACCEPTED = 0
+MAV_RESULT_UNSUPPORTED = 3
+MAV_FRAME_BODY_FRD = 12
+MAV_FRAME_LOCAL_FRD = 20
+MAV_ESTIMATOR_TYPE_VIO = 3
+UINT16_UNKNOWN = 65535
+INT16_UNKNOWN = 32767
+#: MAVLink message ids of the messages the link asks rates for
+MESSAGE_IDS = {"ATTITUDE": 30, "ATTITUDE_QUATERNION": 31, "HIGHRES_IMU": 105, "SCALED_IMU": 26, "RAW_IMU": 27,
+               "SCALED_IMU2": 116, "SCALED_IMU3": 129, "SCALED_PRESSURE": 29, "ALTITUDE": 141, "VFR_HUD": 74,
+               "GPS_RAW_INT": 24, "GLOBAL_POSITION_INT": 33}
+#: each input kind's messages, in order of preference (module docstring)
+SOURCES: dict[str, tuple[str, ...]] = {
+    "attitude": ("ATTITUDE", "ATTITUDE_QUATERNION"),
+    "imu": ("HIGHRES_IMU", "SCALED_IMU", "RAW_IMU", "SCALED_IMU2", "SCALED_IMU3"),
+    "baro": ("SCALED_PRESSURE", "ALTITUDE"),
+    "airspeed": ("VFR_HUD",),
+    "gnss": ("GPS_RAW_INT",),
+    "home": ("GLOBAL_POSITION_INT",),
+}
+RATE_NAMES = {"attitude": "ATT", "imu": "IMU", "baro": "BARO", "airspeed": "AIR", "gnss": "GPS", "home": "POS"}
 TRACKING_STATUS_ACTIVE = 1  # CAMERA_TRACKING_STATUS_FLAGS_ACTIVE
 TRACKING_MODE_POINT = 1     # CAMERA_TRACKING_MODE_POINT
 MAV_SEVERITY = {"emergency": 0, "alert": 1, "critical": 2, "error": 3, "warning": 4, "notice": 5, "info": 6}
 NAMED_VALUE_MAX_CHARS = 10
 LATENCY_HISTORY = 100_000  # capture-to-sent latencies kept per output kind
+CLOCK_JUMP_CONFIRM = 5  # stamps in a row beyond a jump back make it a reboot (fewer: stray stamps, rejected)
 
 _OutputRateHz = Annotated[float, In(0.01, 100.0)]
 _MavlinkId = Annotated[int, In(1, 255)]
+_InputRateHz = Annotated[float, In(0.1, 1000.0)]
 
 
 @dataclass(frozen=True)
@@ -100,6 +165,19 @@ class LinkConfig(Validated):
     MAV_COMP_ID_ONBOARD_COMPUTER).  ``status_values``: send ``GSOE_Q``/``GSOE_GNSS``/``GSOE_VALID`` even while the
     estimate is withheld.  ``unknown_vertical_sigma_m_s``: the one-sigma WIND_COV states for the vertical wind it
     does not estimate.
+
+    Inputs (module docstring): ``request_rates`` asks the autopilot for ``rate_*_hz`` on connecting, refused rates
+    retried at ``rate_fallback`` times themselves down to ``rate_min_fraction`` of the wanted rate;
+    ``source_timeout_s``: a kind's less preferred message is used only after its preferred one has been silent this
+    long; ``raw_imu_accel_scale_m_s2``/``raw_imu_gyro_scale_rad_s``: the RAW_IMU units (ArduPilot: mG and mrad/s);
+    ``air_temperature``: the temperature of the air density that makes VFR_HUD's equivalent airspeed true, the
+    baro's (SCALED_PRESSURE ``temperature``: what ArduPilot's SITL simulates the pitot with; on a real board it reads
+    the warm board) or the ISA's at the pressure altitude; ``max_clock_ahead_s``: a stamp mapping this far beyond
+    the newest one is refused (a message on another time base).
+
+    Velocity output (module docstring): ``velocity_message``; ``ap_vis_verr_min_m_s``/``ap_vis_verr_max_m_s``
+    mirror ArduPilot's ``EK3_VIS_VERR_MIN``/``EK3_VIS_VERR_MAX`` (the range VISION_POSITION_DELTA's confidence
+    maps onto).
     """
 
     connect_timeout_s: Annotated[float, In(0.1, 600.0)] = 10.0
@@ -121,6 +199,32 @@ class LinkConfig(Validated):
     status_values: bool = True
     system_id: _MavlinkId = 1
     component_id: _MavlinkId = MAV_COMP_ID_ONBOARD_COMPUTER
+    velocity_message: Literal["vision_position_delta", "vision_speed_estimate", "odometry"] = "vision_speed_estimate"
+    ap_vis_verr_min_m_s: Annotated[float, In(0.0, 100.0, lo_open=True)] = 0.1
+    ap_vis_verr_max_m_s: Annotated[float, In(0.0, 100.0, lo_open=True)] = 0.5
+    request_rates: bool = True
+    rate_attitude_hz: _InputRateHz = 50.0
+    rate_imu_hz: _InputRateHz = 50.0
+    rate_baro_hz: _InputRateHz = 10.0
+    rate_airspeed_hz: _InputRateHz = 10.0
+    rate_gnss_hz: _InputRateHz = 5.0
+    rate_home_hz: _InputRateHz = 5.0
+    rate_fallback: Annotated[float, In(0.1, 0.99)] = 0.8
+    rate_min_fraction: Annotated[float, In(0.01, 1.0)] = 0.25
+    source_timeout_s: Annotated[float, In(0.01, 60.0)] = 1.0
+    raw_imu_accel_scale_m_s2: Annotated[float, In(0.0, 1.0, lo_open=True)] = GRAVITY_M_S2 / 1000.0
+    raw_imu_gyro_scale_rad_s: Annotated[float, In(0.0, 1.0, lo_open=True)] = 1e-3
+    air_temperature: Literal["baro", "isa"] = "baro"
+    max_clock_ahead_s: Annotated[float, In(0.0, 3600.0, lo_open=True)] = 2.0
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        require(self.ap_vis_verr_max_m_s >= self.ap_vis_verr_min_m_s, "ap_vis_verr_max_m_s",
+                "must be >= ap_vis_verr_min_m_s")
+
+    def rate_hz(self, kind: str) -> float:
+        """The rate wanted of input ``kind`` (a key of :data:`SOURCES`)."""
+        return float(getattr(self, f"rate_{kind}_hz"))
 
 
 # ------------------------------------------------------------------------------------------------ samples
@@ -156,7 +260,10 @@ class OutputEstimate:
     ``vel_ne_m_s`` ground velocity with 2x2 covariance ``vel_cov_ne``; ``vel_d_m_s``/``vel_d_var`` the vertical
     part (NaN: unknown, then ``unknown_vertical_var_m2_s2`` and 0 are sent); ``wind_ne_m_s`` the air's velocity
     (blowing to) with covariance ``wind_cov_ne``; ``drift_rad``/``ata_rad`` with ``drift_sigma_rad``;
-    ``quality`` in [0, 1]; ``gnss_state`` an integer :class:`nav.gnss_monitor.GnssState`.
+    ``quality`` in [0, 1]; ``gnss_state`` an integer :class:`nav.gnss_monitor.GnssState`.  ``roll_rad``,
+    ``pitch_rad``: the AHRS attitude at ``t_us`` and ``heading_rad`` the estimate's heading (the AHRS yaw less the
+    estimated yaw bias): what puts the velocity into the body frame (NaN: unknown, then no body-frame velocity is
+    sent).
     """
 
     t_us: int
@@ -175,6 +282,9 @@ class OutputEstimate:
     vel_d_var: float = float("nan")
     reason: str = ""
     home_amsl_m: float = float("nan")
+    roll_rad: float = float("nan")
+    pitch_rad: float = float("nan")
+    heading_rad: float = float("nan")
 
 
 def check_estimate(est: OutputEstimate, cfg: LinkConfig) -> str:
@@ -229,37 +339,116 @@ def wind_from_deg(wind_ne_m_s: NDArray[np.float64]) -> float:
     return float(wrap_360(math.degrees(math.atan2(-wind_ne_m_s[1], -wind_ne_m_s[0]))))
 
 
-def encode_outputs(est: OutputEstimate, cfg: LinkConfig, kinds: set[str]) -> dict[str, tuple[str, dict[str, Any]]]:
+def quat_from_euler(roll_rad: float, pitch_rad: float, yaw_rad: float) -> list[float]:
+    """The body-to-NED attitude quaternion ``[w, x, y, z]`` of 3-2-1 Euler angles (MAVLink's order)."""
+    cr, sr = math.cos(roll_rad / 2), math.sin(roll_rad / 2)
+    cp, sp = math.cos(pitch_rad / 2), math.sin(pitch_rad / 2)
+    cy, sy = math.cos(yaw_rad / 2), math.sin(yaw_rad / 2)
+    return [cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy]
+
+
+def vertical_velocity(est: OutputEstimate, cfg: LinkConfig) -> tuple[float, float]:
+    """(down velocity, its variance) to send: the estimate's, or 0 with ``unknown_vertical_var_m2_s2``."""
+    if math.isfinite(est.vel_d_m_s) and math.isfinite(est.vel_d_var):
+        return float(est.vel_d_m_s), float(est.vel_d_var)
+    return 0.0, cfg.unknown_vertical_var_m2_s2
+
+
+def body_velocity(est: OutputEstimate, cfg: LinkConfig) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
+    """The ground velocity in the body frame (FRD, m/s) and its 3x3 covariance, or None without the attitude.
+
+    ``v_b = R_nb^T v_n`` with ``R_nb`` of (roll, pitch, the estimate's heading): the heading cancels against the one
+    that made ``v_n`` north/east, so ``v_b`` is the heading-aligned velocity (ground speed along the drift angle)
+    tilted by roll and pitch alone; it holds no heading of its own.
+    """
+    if not all(math.isfinite(a) for a in (est.roll_rad, est.pitch_rad, est.heading_rad)):
+        return None
+    vd, vd_var = vertical_velocity(est, cfg)
+    R = R_nb_from_euler(est.roll_rad, est.pitch_rad, est.heading_rad)
+    v_n = np.array([float(est.vel_ne_m_s[0]), float(est.vel_ne_m_s[1]), vd])
+    cov_n = np.zeros((3, 3))
+    cov_n[:2, :2] = est.vel_cov_ne
+    cov_n[2, 2] = vd_var
+    return R.T @ v_n, R.T @ cov_n @ R
+
+
+def vision_confidence(sigma_m_s: float, cfg: LinkConfig) -> int:
+    """VISION_POSITION_DELTA ``confidence`` (0-100) whose ArduPilot noise, ``EK3_VIS_VERR_MIN + (EK3_VIS_VERR_MAX -
+    EK3_VIS_VERR_MIN) (1 - confidence / 100)``, is ``sigma_m_s`` (clamped to that range)."""
+    lo, hi = cfg.ap_vis_verr_min_m_s, cfg.ap_vis_verr_max_m_s
+    if hi <= lo:
+        return 100
+    return int(round(100.0 * min(1.0, max(0.0, (hi - sigma_m_s) / (hi - lo)))))
+
+
+def encode_velocity(est: OutputEstimate, cfg: LinkConfig, t_usec: int, delta_us: int
+                    ) -> tuple[str, dict[str, Any]] | None:
+    """The velocity output of ``cfg.velocity_message`` (module docstring) stamped ``t_usec`` (autopilot clock);
+    ``delta_us``: the time since the previous one (VISION_POSITION_DELTA's interval).  None when a body-frame form
+    lacks the attitude."""
+    vd, vd_var = vertical_velocity(est, cfg)
+    if cfg.velocity_message == "vision_speed_estimate":
+        c = est.vel_cov_ne
+        cov = [float(c[0, 0]), float(c[0, 1]), 0.0, float(c[1, 0]), float(c[1, 1]), 0.0, 0.0, 0.0, float(vd_var)]
+        return ("VISION_SPEED_ESTIMATE", {"usec": t_usec, "x": float(est.vel_ne_m_s[0]),
+                                          "y": float(est.vel_ne_m_s[1]), "z": vd, "covariance": cov})
+    body = body_velocity(est, cfg)
+    if body is None:
+        return None
+    v_b, cov_b = body
+    if cfg.velocity_message == "vision_position_delta":
+        dt_s = max(delta_us, 1) / 1e6
+        sigma = math.sqrt(max(float(np.trace(cov_b[:2, :2])) / 2.0, 0.0))
+        return ("VISION_POSITION_DELTA", {"time_usec": t_usec, "time_delta_usec": int(max(delta_us, 1)),
+                                          "angle_delta": [0.0, 0.0, 0.0],
+                                          "position_delta": [float(v) * dt_s for v in v_b],
+                                          "confidence": float(vision_confidence(sigma, cfg))})
+    nan = math.nan
+    vel_cov = [nan] * 21  # upper triangle of the 6x6 (vx, vy, vz, rates): the velocity block, rates unknown
+    for (i, j), k in {(0, 0): 0, (0, 1): 1, (0, 2): 2, (1, 1): 6, (1, 2): 7, (2, 2): 11}.items():
+        vel_cov[k] = float(cov_b[i, j])
+    return ("ODOMETRY", {"time_usec": t_usec, "frame_id": MAV_FRAME_LOCAL_FRD, "child_frame_id": MAV_FRAME_BODY_FRD,
+                         "x": nan, "y": nan, "z": nan,
+                         "q": quat_from_euler(est.roll_rad, est.pitch_rad, est.heading_rad),
+                         "vx": float(v_b[0]), "vy": float(v_b[1]), "vz": float(v_b[2]),
+                         "rollspeed": nan, "pitchspeed": nan, "yawspeed": nan, "pose_covariance": [nan] * 21,
+                         "velocity_covariance": vel_cov, "reset_counter": 0,
+                         "estimator_type": MAV_ESTIMATOR_TYPE_VIO, "quality": int(round(100 * est.quality))})
+
+
+def encode_outputs(est: OutputEstimate, cfg: LinkConfig, kinds: set[str], *, t_offset_us: int = 0,
+                   vision_delta_us: int | None = None) -> dict[str, tuple[str, dict[str, Any]]]:
     """MAVLink message names and fields for the requested output ``kinds`` (``named``, ``vision``, ``wind``).
 
-    The estimate must have passed :func:`check_estimate`.  VISION_SPEED_ESTIMATE is returned with its fields as
-    plain numbers; the link turns it into a MAVSDK ``VisionSpeedEstimate``.
+    The estimate must have passed :func:`check_estimate`.  Stamps are ``est.t_us - t_offset_us`` (the autopilot's
+    clock when ``t_offset_us`` is the link's offset, :class:`LinkClock`).  ``vision`` is the velocity output of
+    :func:`encode_velocity` (``vision_delta_us``: the time since the last one, default one period of
+    ``vision_speed_hz``); VISION_SPEED_ESTIMATE is returned with its fields as plain numbers, the link turns it into
+    a MAVSDK ``VisionSpeedEstimate``.
     """
     out: dict[str, tuple[str, dict[str, Any]]] = {}
-    t_ms = int(est.t_us // 1000) & 0xFFFFFFFF
+    t_usec = max(int(est.t_us) - int(t_offset_us), 0)
+    t_ms = int(t_usec // 1000) & 0xFFFFFFFF
     if "named" in kinds and cfg.named_values == "named_value_float":
         vals = {"GSOE_DRIFT": math.degrees(est.drift_rad), "GSOE_ATA": float(wrap_360(math.degrees(est.ata_rad)))}
         for name, v in vals.items():
             out[f"named:{name}"] = ("NAMED_VALUE_FLOAT", {"time_boot_ms": t_ms, "name": name, "value": float(v)})
     elif "named" in kinds and cfg.named_values == "debug_vect":
-        out["named:GSOE"] = ("DEBUG_VECT", {"name": "GSOE", "time_usec": int(est.t_us),
+        out["named:GSOE"] = ("DEBUG_VECT", {"name": "GSOE", "time_usec": t_usec,
                                             "x": math.degrees(est.drift_rad),
                                             "y": float(wrap_360(math.degrees(est.ata_rad))), "z": est.quality})
     if "vision" in kinds and cfg.vision_speed:
-        vd, vd_var = est.vel_d_m_s, est.vel_d_var
-        if not (math.isfinite(vd) and math.isfinite(vd_var)):
-            vd, vd_var = 0.0, cfg.unknown_vertical_var_m2_s2
-        c = est.vel_cov_ne
-        cov = [float(c[0, 0]), float(c[0, 1]), 0.0, float(c[1, 0]), float(c[1, 1]), 0.0, 0.0, 0.0, float(vd_var)]
-        out["vision"] = ("VISION_SPEED_ESTIMATE", {"usec": int(est.t_us), "x": float(est.vel_ne_m_s[0]),
-                                                   "y": float(est.vel_ne_m_s[1]), "z": float(vd),
-                                                   "covariance": cov})
+        delta = round(1e6 / cfg.vision_speed_hz) if vision_delta_us is None else vision_delta_us
+        vel = encode_velocity(est, cfg, t_usec, delta)
+        if vel is not None:
+            out["vision"] = vel
     if "wind" in kinds:
         speed = float(np.hypot(*est.wind_ne_m_s))
         if cfg.wind_cov:
             speed_sigma, rms_sigma = wind_sigmas(est.wind_ne_m_s, est.wind_cov_ne)
             alt = est.height_agl_m + (est.home_amsl_m if math.isfinite(est.home_amsl_m) else 0.0)
-            out["wind_cov"] = ("WIND_COV", {"time_usec": int(est.t_us), "wind_x": float(est.wind_ne_m_s[0]),
+            out["wind_cov"] = ("WIND_COV", {"time_usec": t_usec, "wind_x": float(est.wind_ne_m_s[0]),
                                             "wind_y": float(est.wind_ne_m_s[1]), "wind_z": 0.0,
                                             "var_horiz": rms_sigma, "var_vert": cfg.unknown_vertical_sigma_m_s,
                                             "wind_alt": float(alt), "horiz_accuracy": speed_sigma,
@@ -298,8 +487,90 @@ def now_us() -> int:
     return time.monotonic_ns() // 1000
 
 
+@dataclass
+class StreamClock:
+    """One input kind's mapping of the autopilot's clock onto the samples' ``t_us``: ``t_us = vehicle_us +
+    offset_us`` (the link's offset; re-chosen for the kind when its autopilot clock jumps back)."""
+
+    offset_us: int
+
+
+class LinkClock:
+    """The samples' clock (module docstring): the autopilot's clock shifted by one offset, chosen at the first stamp
+    as ``receive time - stamp`` so that it starts at the companion's monotonic clock ``clock``.
+
+    :meth:`now_us` is the newest stamp plus the companion time since it arrived (the link silent: time still
+    passes); :meth:`from_companion_us` maps a companion time (a camera's capture) with the least-delayed attitude
+    packet's offset (:class:`ClockSync`, right when the autopilot runs in real time); :meth:`to_vehicle_us` maps a
+    sample time back to the autopilot's clock (what the outputs are stamped with).
+    """
+
+    def __init__(self, window_s: float, clock: Callable[[], int] = now_us) -> None:
+        self._clock = clock
+        self.offset_us: int | None = None
+        self.sync = ClockSync(window_s)
+        self._newest_us: int | None = None
+        self._newest_recv_us = 0
+
+    def anchor(self, vehicle_us: int, receive_us: int) -> int:
+        """The link's offset (chosen now if this is the first stamp)."""
+        if self.offset_us is None:
+            self.offset_us = receive_us - vehicle_us
+            log.info("autopilot clock: samples' t_us = autopilot us %+d us", self.offset_us)
+        return self.offset_us
+
+    def observe(self, t_us: int, receive_us: int, attitude: bool = False) -> None:
+        if self._newest_us is None or t_us > self._newest_us:
+            self._newest_us, self._newest_recv_us = t_us, receive_us
+        if attitude:
+            self.sync.observe(t_us, receive_us)
+
+    def newest_us(self) -> int:
+        """The newest stamp received (the companion's clock before any)."""
+        return self._newest_us if self._newest_us is not None else self._clock()
+
+    def now_us(self) -> int:
+        recv = self._clock()
+        if self._newest_us is None:
+            return recv
+        return self._newest_us + max(recv - self._newest_recv_us, 0)
+
+    def from_companion_us(self, companion_us: int) -> int:
+        if self.sync.offset_us is not None:
+            return companion_us - self.sync.offset_us
+        return companion_us - self._clock() + self.now_us()
+
+    def to_vehicle_us(self, t_us: int) -> int:
+        return t_us - (self.offset_us or 0)
+
+
 def pressure_altitude_m(pressure_hpa: float) -> float:
     return ISA_T0_K / ISA_LAPSE_K_M * (1.0 - (pressure_hpa / ISA_P0_HPA) ** (1.0 / ISA_EXP))
+
+
+def isa_temperature_k(pressure_pa: float) -> float:
+    """The ISA temperature at the pressure altitude of ``pressure_pa``."""
+    return ISA_T0_K - ISA_LAPSE_K_M * pressure_altitude_m(pressure_pa / 100.0)
+
+
+def true_airspeed_m_s(eas_m_s: float, pressure_pa: float, temperature_k: float) -> float:
+    """True airspeed of the equivalent airspeed ``eas_m_s`` in air of ``pressure_pa`` and ``temperature_k``:
+    ``TAS = EAS sqrt(rho0 / rho)``, ``rho = p / (R T)`` (ArduPilot's EAS2TAS; 3 % at 700 m in the ISA)."""
+    rho = pressure_pa / (R_AIR_J_KG_K * temperature_k)
+    return eas_m_s * math.sqrt(RHO0_KG_M3 / rho)
+
+
+def _field(f: dict[str, Any], name: str) -> float:
+    """A numeric field of a message (MAVSDK's JSON writes NaN as null)."""
+    v = f[name]
+    return math.nan if v is None else float(v)
+
+
+def rates_text(granted: dict[str, tuple[str, float]]) -> str:
+    """The STATUSTEXT telling what rates the autopilot granted, e.g. ``GSOE Hz ATT 40 IMU 40 BARO 10 ...``
+    (``granted``: kind -> (message, Hz); 0 Hz: none granted)."""
+    parts = [f"{RATE_NAMES.get(k, k)} {hz:.3g}" for k, (_, hz) in granted.items()]
+    return ("GSOE Hz " + " ".join(parts))[:50]
 
 
 class TelemetryGuard:
@@ -310,9 +581,18 @@ class TelemetryGuard:
         self.clock = clock
         self.rejected: dict[str, int] = {}
         self.accepted: dict[str, int] = {}
-        self._sync: dict[str, ClockSync] = {}
+        self.link_clock = LinkClock(cfg.clock_window_s, clock)
+        #: per kind: t_us = autopilot us + offset_us (the companion logs every new one, clock_sync.csv)
+        self._sync: dict[str, StreamClock] = {}
         self._last_vehicle_us: dict[str, int] = {}
         self.ref_lat_lon: tuple[float, float] | None = None
+        #: per kind, message name -> companion time it last arrived (the source preference)
+        self._seen: dict[str, dict[str, int]] = {}
+        self._kind_of = {name: kind for kind, names in SOURCES.items() for name in names}
+        self.used: dict[str, str] = {}  # kind -> the message in use
+        self._pressure_pa = math.nan
+        self._temperature_k = math.nan
+        self._back: dict[str, list[int]] = {}
 
     def _reject(self, kind: str, reason: str) -> None:
         key = f"{kind}:{reason}"
@@ -322,22 +602,168 @@ class TelemetryGuard:
             log.warning("rejected %s telemetry (%s), %d so far", kind, reason, n)
 
     def _stamp(self, kind: str, vehicle_us: int) -> int | None:
-        """Companion time of a vehicle-stamped sample, or None (rejected) when its time went backwards."""
+        """The samples' time of an autopilot-stamped sample (:class:`LinkClock`), or None (rejected) when its time
+        went backwards or lies beyond ``max_clock_ahead_s`` of the newest stamp; an unstamped one (``vehicle_us``
+        <= 0) gets the newest stamp."""
         recv = self.clock()
+        lc = self.link_clock
         if vehicle_us <= 0:
-            return recv
+            return lc.newest_us()
         last = self._last_vehicle_us.get(kind)
-        sync = self._sync.setdefault(kind, ClockSync(self.cfg.clock_window_s))
+        sc = self._sync.get(kind)
+        if sc is None:
+            sc = self._sync[kind] = StreamClock(lc.anchor(vehicle_us, recv))
         if last is not None and vehicle_us <= last:
-            if last - vehicle_us > self.cfg.max_clock_backwards_s * 1e6:
-                log.warning("%s: vehicle clock jumped back %.1f s (reboot?): clock re-synchronised", kind,
-                            (last - vehicle_us) / 1e6)
-                sync.reset()
-            else:
+            if last - vehicle_us <= self.cfg.max_clock_backwards_s * 1e6:
                 self._reject(kind, "time not increasing")
                 return None
+            # a jump back: a reboot once CLOCK_JUMP_CONFIRM stamps in a row carry on from it, else a stray stamp
+            back = self._back.setdefault(kind, [])
+            if back and vehicle_us <= back[-1]:
+                back.clear()
+            back.append(vehicle_us)
+            if len(back) < CLOCK_JUMP_CONFIRM:
+                self._reject(kind, "time jumped back")
+                return None
+            back.clear()
+            sc.offset_us = lc.now_us() - vehicle_us
+            log.warning("%s: vehicle clock jumped back %.1f s (reboot?): clock re-synchronised", kind,
+                        (last - vehicle_us) / 1e6)
+            if kind == "attitude":
+                lc.sync.reset()
+        self._back.pop(kind, None)
+        t = vehicle_us + sc.offset_us
+        if lc.offset_us is not None and t - lc.now_us() > self.cfg.max_clock_ahead_s * 1e6:
+            self._reject(kind, "stamp ahead of the autopilot's clock")
+            return None
         self._last_vehicle_us[kind] = vehicle_us
-        return sync.observe(vehicle_us, recv)
+        lc.observe(t, recv, attitude=kind == "attitude")
+        return t
+
+    def _preferred(self, kind: str, name: str) -> bool:
+        """Whether message ``name`` is the one of its kind to use now (module docstring)."""
+        now = self.clock()
+        seen = self._seen.setdefault(kind, {})
+        seen[name] = now
+        timeout_us = self.cfg.source_timeout_s * 1e6
+        for better in SOURCES[kind]:
+            if better == name:
+                break
+            t = seen.get(better)
+            if t is not None and now - t <= timeout_us:
+                return False
+        if self.used.get(kind) != name:
+            log.info("%s from %s", kind, name)
+            self.used[kind] = name
+        return True
+
+    def message(self, name: str, f: dict[str, Any]) -> Sample | None:
+        """A sample from one message's fields (MAVSDK ``MavlinkDirect`` JSON or pymavlink ``to_dict``), or None
+        (not a preferred source now, rejected, or a message that only updates the air data)."""
+        kind = self._kind_of.get(name)
+        if kind is None:
+            return self.tracking(f) if name == "CAMERA_TRACKING_IMAGE_STATUS" else None
+        try:
+            if name == "HIGHRES_IMU":
+                self._air_from_highres(f)
+            elif name == "SCALED_PRESSURE":
+                self._air_from_scaled_pressure(f)
+            if not self._preferred(kind, name):
+                return None
+            if kind == "attitude":
+                return self._attitude_msg(name, f)
+            if kind == "imu":
+                return self._imu_msg(name, f)
+            if kind == "baro":
+                return self._baro_msg(name, f)
+            if kind == "airspeed":
+                return self.airspeed_eas(_field(f, "airspeed"))
+            if kind == "gnss":
+                return self.gps_raw_int(f)
+            return self.home(_field(f, "alt") / 1000.0, _field(f, "relative_alt") / 1000.0,
+                             int(f["time_boot_ms"]) * 1000)
+        except (KeyError, TypeError, ValueError, IndexError):
+            self._reject(kind, f"malformed {name}")
+            return None
+
+    def _attitude_msg(self, name: str, f: dict[str, Any]) -> AttitudeSample | None:
+        us = int(f["time_boot_ms"]) * 1000
+        if name == "ATTITUDE":
+            r, p, y = (_field(f, k) for k in ("roll", "pitch", "yaw"))
+        else:  # ATTITUDE_QUATERNION: w, x, y, z
+            w, x, yy, z = (_field(f, k) for k in ("q1", "q2", "q3", "q4"))
+            r = math.atan2(2 * (w * x + yy * z), 1 - 2 * (x * x + yy * yy))
+            p = math.asin(max(-1.0, min(1.0, 2 * (w * yy - z * x))))
+            y = math.atan2(2 * (w * z + x * yy), 1 - 2 * (yy * yy + z * z))
+        return self.attitude(math.degrees(r), math.degrees(p), math.degrees(y), us)
+
+    def _imu_msg(self, name: str, f: dict[str, Any]) -> ImuSample | None:
+        axes = ("x", "y", "z")
+        if name == "HIGHRES_IMU":
+            upd = f.get("fields_updated")
+            if upd is not None and int(upd) & 0x3F != 0x3F:  # bits 0-5: accelerometer and gyro updated
+                return None
+            acc = tuple(_field(f, a + "acc") for a in axes)
+            gyr = tuple(_field(f, a + "gyro") for a in axes)
+            return self.imu(gyr, acc, int(f["time_usec"]))  # type: ignore[arg-type]
+        if name == "RAW_IMU":
+            ka, kg, us = self.cfg.raw_imu_accel_scale_m_s2, self.cfg.raw_imu_gyro_scale_rad_s, int(f["time_usec"])
+        else:  # SCALED_IMU, SCALED_IMU2, SCALED_IMU3: mG and mrad/s
+            ka, kg, us = GRAVITY_M_S2 / 1000.0, 1e-3, int(f["time_boot_ms"]) * 1000
+        acc = tuple(ka * _field(f, a + "acc") for a in axes)
+        gyr = tuple(kg * _field(f, a + "gyro") for a in axes)
+        return self.imu(gyr, acc, us)  # type: ignore[arg-type]
+
+    def _baro_msg(self, name: str, f: dict[str, Any]) -> BaroSample | None:
+        if name == "SCALED_PRESSURE":
+            return self.baro(_field(f, "press_abs"), int(f["time_boot_ms"]) * 1000)
+        alt = _field(f, "altitude_monotonic")  # ALTITUDE (PX4): the baro's, never jumps
+        if not math.isfinite(alt) or not ALT_RANGE_M[0] <= alt <= ALT_RANGE_M[1]:
+            self._reject("baro", "altitude not finite or out of range")
+            return None
+        amsl = _field(f, "altitude_amsl")
+        if not math.isfinite(self._pressure_pa) and math.isfinite(amsl):
+            self._pressure_pa = 100.0 * ISA_P0_HPA * (1.0 - ISA_LAPSE_K_M * amsl / ISA_T0_K) ** ISA_EXP
+        t = self._stamp("baro", int(f["time_usec"]))
+        if t is None:
+            return None
+        self._ok("baro")
+        return BaroSample(t, alt)
+
+    def _air_from_scaled_pressure(self, f: dict[str, Any]) -> None:
+        p_hpa, t_cdeg = _field(f, "press_abs"), _field(f, "temperature")
+        if math.isfinite(p_hpa) and p_hpa > 0.0:
+            self._pressure_pa = 100.0 * p_hpa
+        if math.isfinite(t_cdeg) and -8000.0 < t_cdeg < 8000.0:
+            self._temperature_k = t_cdeg / 100.0 + CELSIUS_TO_KELVIN
+
+    def _air_from_highres(self, f: dict[str, Any]) -> None:
+        upd = int(f.get("fields_updated") or 0)
+        p_hpa, t_c = (_field(f, k) if k in f else math.nan for k in ("abs_pressure", "temperature"))
+        if upd & (1 << 9) and math.isfinite(p_hpa) and p_hpa > 0.0 and "SCALED_PRESSURE" not in self._seen.get(
+                "baro", {}):
+            self._pressure_pa = 100.0 * p_hpa
+            if upd & (1 << 12) and math.isfinite(t_c) and -80.0 < t_c < 80.0:
+                self._temperature_k = t_c + CELSIUS_TO_KELVIN
+
+    def air_temperature_k(self) -> float:
+        """The temperature the airspeed is made true with (``air_temperature``), nan when not known yet."""
+        if self.cfg.air_temperature == "isa" or not math.isfinite(self._temperature_k):
+            return isa_temperature_k(self._pressure_pa) if math.isfinite(self._pressure_pa) else math.nan
+        return self._temperature_k
+
+    def airspeed_eas(self, eas_m_s: float, vehicle_us: int = 0) -> AirspeedSample | None:
+        """An equivalent airspeed (VFR_HUD) made true with the air density of the last baro report."""
+        if not (isinstance(eas_m_s, int | float) and math.isfinite(eas_m_s)):
+            self._reject("airspeed", "not finite")
+            return None
+        temp_k = self.air_temperature_k()
+        if not (math.isfinite(self._pressure_pa) and math.isfinite(temp_k)):
+            self._reject("airspeed", "no air density yet (no baro)")
+            return None
+        tas = true_airspeed_m_s(float(eas_m_s), self._pressure_pa, temp_k)
+        s = self.airspeed(tas, vehicle_us)
+        return AirspeedSample(s.t_us, s.tas_m_s, float(eas_m_s)) if s is not None else None
 
     def _ok(self, kind: str) -> None:
         self.accepted[kind] = self.accepted.get(kind, 0) + 1
@@ -373,15 +799,19 @@ class TelemetryGuard:
         self._ok("imu")
         return ImuSample(t, g, a)
 
-    def airspeed(self, tas_m_s: float) -> AirspeedSample | None:
+    def airspeed(self, tas_m_s: float, vehicle_us: int = 0) -> AirspeedSample | None:
+        """A true airspeed (stamped ``vehicle_us``, or the newest autopilot stamp when it carries none)."""
         if not (isinstance(tas_m_s, int | float) and math.isfinite(tas_m_s)):
             self._reject("airspeed", "not finite")
             return None
         if not 0.0 <= tas_m_s <= MAX_AIRSPEED_M_S:
             self._reject("airspeed", "out of range")
             return None
+        t = self._stamp("airspeed", vehicle_us)
+        if t is None:
+            return None
         self._ok("airspeed")
-        return AirspeedSample(self.clock(), float(tas_m_s))
+        return AirspeedSample(t, float(tas_m_s))
 
     def baro(self, pressure_hpa: float, vehicle_us: int) -> BaroSample | None:
         if not (isinstance(pressure_hpa, int | float) and math.isfinite(pressure_hpa)) or pressure_hpa <= 0.0:
@@ -397,7 +827,7 @@ class TelemetryGuard:
         self._ok("baro")
         return BaroSample(t, alt, pressure_pa=float(pressure_hpa) * 100.0)
 
-    def home(self, alt_amsl_m: float, rel_alt_m: float) -> HomeReading | None:
+    def home(self, alt_amsl_m: float, rel_alt_m: float, vehicle_us: int = 0) -> HomeReading | None:
         vals = (alt_amsl_m, rel_alt_m)
         if not all(isinstance(v, int | float) and math.isfinite(v) for v in vals):
             self._reject("position", "not finite")
@@ -405,8 +835,11 @@ class TelemetryGuard:
         if not (ALT_RANGE_M[0] <= alt_amsl_m <= ALT_RANGE_M[1] and abs(rel_alt_m) <= ALT_RANGE_M[1]):
             self._reject("position", "out of range")
             return None
+        t = self._stamp("position", vehicle_us)
+        if t is None:
+            return None
         self._ok("position")
-        return HomeReading(self.clock(), float(alt_amsl_m), float(rel_alt_m))
+        return HomeReading(t, float(alt_amsl_m), float(rel_alt_m))
 
     def tracking(self, f: dict[str, Any]) -> TrackReading | None:
         """CAMERA_TRACKING_IMAGE_STATUS fields: an active point in [0, 1]^2, or an inactive report (NaN point)."""
@@ -424,7 +857,7 @@ class TelemetryGuard:
         self._ok("tracking")
         if not active:
             x = y = math.nan
-        return TrackReading(self.clock(), x, y, active)
+        return TrackReading(self.link_clock.newest_us(), x, y, active)
 
     def gps_raw_int(self, f: dict[str, Any]) -> GnssSample | None:
         """GPS_RAW_INT fields (as MAVSDK's MavlinkDirect JSON or pymavlink's ``to_dict``)."""
@@ -478,6 +911,10 @@ class LinkStats:
     dropped_samples: int = 0
     acks: list[dict[str, Any]] = field(default_factory=list)
     send_latency_us: dict[str, deque[int]] = field(default_factory=dict)
+    #: kind -> (message, rate in Hz) the autopilot granted (0: refused at every rate; module docstring)
+    rates_granted: dict[str, tuple[str, float]] = field(default_factory=dict)
+    #: every rate request: (message, Hz asked, MAV_RESULT or -1 without an answer)
+    rate_requests: list[tuple[str, float, int]] = field(default_factory=list)
 
 
 class CompanionLink:
@@ -526,7 +963,6 @@ class CompanionLink:
         from mavsdk.asyncio import Configuration, Mavsdk
         from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync
         from mavsdk.asyncio.plugins.mocap import MocapAsync
-        from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
 
         if self._mavsdk is None:
             levels = {LogLevel.DEBUG: logging.DEBUG, LogLevel.INFO: logging.INFO, LogLevel.WARN: logging.WARNING}
@@ -548,33 +984,79 @@ class CompanionLink:
             return False
         self._system = system
         self.target_system = await system.get_system_id()
-        tel = TelemetryAsync(system)
         self._direct = MavlinkDirectAsync(system)
         self._mocap = MocapAsync(system)
-        g = self.guard
-        self._tasks = [
-            asyncio.ensure_future(self._pump(tel.subscribe_attitude_euler(), lambda a: g.attitude(
-                a.roll_deg, a.pitch_deg, a.yaw_deg, a.timestamp_us))),
-            asyncio.ensure_future(self._pump(tel.subscribe_scaled_imu(), lambda m: g.imu(
-                (m.angular_velocity_frd.forward_rad_s, m.angular_velocity_frd.right_rad_s,
-                 m.angular_velocity_frd.down_rad_s),
-                (m.acceleration_frd.forward_m_s2, m.acceleration_frd.right_m_s2, m.acceleration_frd.down_m_s2),
-                m.timestamp_us))),
-            asyncio.ensure_future(self._pump(tel.subscribe_fixedwing_metrics(), lambda m: g.airspeed(
-                m.airspeed_m_s))),
-            asyncio.ensure_future(self._pump(tel.subscribe_scaled_pressure(), lambda m: g.baro(
-                m.absolute_pressure_hpa, m.timestamp_us))),
-            asyncio.ensure_future(self._pump(self._direct.subscribe_message("GPS_RAW_INT"), lambda m: g.gps_raw_int(
-                json.loads(m.fields_json)))),
-            asyncio.ensure_future(self._pump(tel.subscribe_position(), lambda m: g.home(
-                m.absolute_altitude_m, m.relative_altitude_m))),
-            asyncio.ensure_future(self._pump(self._direct.subscribe_message("CAMERA_TRACKING_IMAGE_STATUS"),
-                                             lambda m: g.tracking(json.loads(m.fields_json)))),
-            asyncio.ensure_future(self._watch(system)),
-        ]
+        names = [n for kind_names in SOURCES.values() for n in kind_names] + ["CAMERA_TRACKING_IMAGE_STATUS"]
+        self._tasks = [asyncio.ensure_future(self._pump(self._direct.subscribe_message(n), self._converter(n)))
+                       for n in names]
+        self._tasks.append(asyncio.ensure_future(self._watch(system)))
         self.stats.connected = True
         log.info("connected to autopilot (system %d) on %s", self.target_system, self.url)
+        if self.cfg.request_rates:
+            self._tasks.append(asyncio.ensure_future(self._request_rates()))
         return True
+
+    def _converter(self, name: str) -> Callable[[Any], Sample | None]:
+        g = self.guard
+        return lambda m: g.message(name, json.loads(m.fields_json))
+
+    async def _request_rates(self) -> None:
+        """Ask for each kind's rate (module docstring); log what was granted and tell the ground station."""
+        from mavsdk.asyncio.plugins.mavlink_direct import MavlinkMessage
+
+        cfg = self.cfg
+        granted: dict[str, tuple[str, float]] = {}
+        unsupported = False
+        for kind, names in SOURCES.items():
+            want = cfg.rate_hz(kind)
+            granted[kind] = (names[0], 0.0)
+            for name in names:
+                hz = want
+                while hz >= want * cfg.rate_min_fraction - 1e-9 and not unsupported:
+                    fields = {"target_system": self.target_system, "target_component": self.target_component,
+                              "command": MAV_CMD_SET_MESSAGE_INTERVAL, "confirmation": 0,
+                              "param1": float(MESSAGE_IDS[name]), "param2": float(round(1e6 / hz)), "param3": 0.0,
+                              "param4": 0.0, "param5": 0.0, "param6": 0.0, "param7": 0.0}
+                    msg = MavlinkMessage(message_name="COMMAND_LONG", target_system_id=self.target_system,
+                                         target_component_id=self.target_component, fields_json=json.dumps(fields))
+                    try:
+                        ack = await self._direct.send_command(msg)
+                        result = int(json.loads(ack.fields_json).get("result", -1)) if ack.fields_json else -1
+                    except Exception as e:  # no answer: the autopilot may not know the command
+                        log.debug("rate request %s %.3g Hz: %s", name, hz, e)
+                        result = -1
+                    self.stats.rate_requests.append((name, hz, result))
+                    if result == MAV_RESULT_ACCEPTED:
+                        granted[kind] = (name, hz)
+                        break
+                    if result in (MAV_RESULT_UNSUPPORTED, -1):
+                        unsupported = True
+                        break
+                    hz *= cfg.rate_fallback
+                if granted[kind][1] > 0.0 or unsupported:
+                    break
+        self.stats.rates_granted = granted
+        if unsupported:
+            log.warning("the autopilot does not set message rates (MAV_CMD_SET_MESSAGE_INTERVAL unanswered or "
+                        "unsupported): using the rates it streams")
+            return
+        for kind, (name, hz) in granted.items():
+            if hz <= 0.0:
+                log.warning("rate of %s refused for every message of %s", kind, SOURCES[kind])
+            elif hz < cfg.rate_hz(kind):
+                log.warning("%s: %s granted at %.3g Hz (asked %.3g Hz)", kind, name, hz, cfg.rate_hz(kind))
+            else:
+                log.info("%s: %s at %.3g Hz", kind, name, hz)
+        self.send_statustext(rates_text(granted), "info")
+
+    # ---------------------------------------------------------------- clock
+    def now_us(self) -> int:
+        """The samples' clock now (:class:`LinkClock`): what the estimator's time is compared with."""
+        return self.guard.link_clock.now_us()
+
+    def from_companion_us(self, companion_us: int) -> int:
+        """A time on the companion's monotonic clock (a camera's capture) on the samples' clock."""
+        return self.guard.link_clock.from_companion_us(companion_us)
 
     async def _pump(self, stream: Any, convert: Callable[[Any], Sample | None]) -> None:
         async for raw in stream:
@@ -595,6 +1077,8 @@ class CompanionLink:
         async for connected in system.is_connected_state():
             if connected != self.stats.connected:
                 log.warning("autopilot link %s", "restored" if connected else "lost")
+                if connected and self.cfg.request_rates:  # a rebooted autopilot forgot the rates
+                    self._tasks.append(asyncio.ensure_future(self._request_rates()))
             self.stats.connected = bool(connected)
 
     def stop(self, destroy_native: bool = True) -> None:
@@ -647,11 +1131,17 @@ class CompanionLink:
         kinds = set()
         if self.cfg.named_values != "off" and self._due("named", est.t_us, self.cfg.named_values_hz):
             kinds.add("named")
+        last_vision = self._last_sent_us.get("vision")
         if self.cfg.vision_speed and self._due("vision", est.t_us, self.cfg.vision_speed_hz):
             kinds.add("vision")
         if (self.cfg.wind_cov or self.cfg.wind_ardupilot) and self._due("wind", est.t_us, self.cfg.wind_hz):
             kinds.add("wind")
-        for key, (name, fields) in encode_outputs(est, self.cfg, kinds).items():
+        period_us = round(1e6 / self.cfg.vision_speed_hz)
+        delta = est.t_us - last_vision if last_vision is not None else period_us
+        delta = int(min(max(delta, 1), 2 * period_us))  # after a gap: one period's displacement, not the gap's
+        outputs = encode_outputs(est, self.cfg, kinds, t_offset_us=self.guard.link_clock.offset_us or 0,
+                                 vision_delta_us=delta)
+        for key, (name, fields) in outputs.items():
             self._submit(key, self._send_one(name, fields), capture_us)
         return ""
 

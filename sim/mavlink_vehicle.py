@@ -417,6 +417,16 @@ def isa_pressure_hpa(alt_amsl_m: float) -> float:
     return ISA_P0_HPA * (1.0 - ISA_LAPSE_K_M * alt_amsl_m / ISA_T0_K) ** ISA_EXP
 
 
+BARO_TEMPERATURE_CDEG = 2000  # SCALED_PRESSURE temperature (20 degC)
+
+
+def eas_per_tas(alt_amsl_m: float) -> float:
+    """Equivalent over true airspeed in the air the vehicle reports (ISA pressure at ``alt_amsl_m``, temperature
+    :data:`BARO_TEMPERATURE_CDEG`): VFR_HUD carries the equivalent airspeed, as ArduPilot's does."""
+    rho = isa_pressure_hpa(alt_amsl_m) * 100.0 / (287.05 * (BARO_TEMPERATURE_CDEG / 100.0 + 273.15))
+    return math.sqrt(rho / AIR_DENSITY_KG_M3)
+
+
 def _finite(*vals: Any) -> bool:
     try:
         return all(math.isfinite(float(v)) for v in vals)
@@ -777,13 +787,14 @@ class MavlinkVehicle:
             tas = self._tas.tas_m_s if self._tas is not None else tr.tas_m_s
             press = (math.nan, math.inf, BAD_PRESSURE_HPA)[bad_kind] if bad else isa_pressure_hpa(alt_amsl)
             q_hpa = 0.5 * AIR_DENSITY_KG_M3 * tas**2 / 100.0
-            self._send(m.scaled_pressure_encode(max((self._baro.t_us + off) // 1000, 0), press, q_hpa, 2000))
+            self._send(m.scaled_pressure_encode(max((self._baro.t_us + off) // 1000, 0), press, q_hpa,
+                                                BARO_TEMPERATURE_CDEG))
         gs = float(np.hypot(*tr.vel_ned_m_s[:2]))
         if self._tas is not None and self._due("VFR_HUD", t):
             tas = (math.nan, -math.inf, BAD_AIRSPEED_M_S)[bad_kind] if bad else self._tas.tas_m_s
             yaw = self._ahrs.yaw_rad if self._ahrs is not None else tr.yaw_rad
-            self._send(m.vfr_hud_encode(tas, gs, int(round(math.degrees(yaw))) % 360, 50, alt_amsl,
-                                        -float(tr.vel_ned_m_s[2])))
+            self._send(m.vfr_hud_encode(tas * eas_per_tas(alt_amsl), gs, int(round(math.degrees(yaw))) % 360, 50,
+                                        alt_amsl, -float(tr.vel_ned_m_s[2])))
         if self._due("GLOBAL_POSITION_INT", t) and self._last_fix is not None:
             lat, lon = self._last_fix
             v = tr.vel_ned_m_s
