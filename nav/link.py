@@ -104,6 +104,7 @@ from common.config import In, Validated, require
 from common.samples import AirspeedSample, AttitudeSample, BaroSample, GnssSample, ImuSample
 from gsoe.rotation import R_nb_from_euler
 from nav.gnss_monitor import GPS_FIX_TYPE_3D
+from nav.hygiene import AutopilotSenders
 
 log = logging.getLogger(__name__)
 
@@ -164,7 +165,8 @@ class LinkConfig(Validated):
     ``system_id``/``component_id``: the companion's MAVLink identity (the vehicle's system id; component 191,
     MAV_COMP_ID_ONBOARD_COMPUTER).  ``status_values``: send ``GSOE_Q``/``GSOE_GNSS``/``GSOE_VALID`` even while the
     estimate is withheld.  ``unknown_vertical_sigma_m_s``: the one-sigma WIND_COV states for the vertical wind it
-    does not estimate.
+    does not estimate.  ``autopilot_system_id``/``autopilot_component_id``: the only sender telemetry is taken from
+    (0: learnt from the autopilot's HEARTBEAT; :mod:`nav.hygiene`).
 
     Inputs (module docstring): ``request_rates`` asks the autopilot for ``rate_*_hz`` on connecting, refused rates
     retried at ``rate_fallback`` times themselves down to ``rate_min_fraction`` of the wanted rate;
@@ -199,6 +201,8 @@ class LinkConfig(Validated):
     status_values: bool = True
     system_id: _MavlinkId = 1
     component_id: _MavlinkId = MAV_COMP_ID_ONBOARD_COMPUTER
+    autopilot_system_id: Annotated[int, In(0, 255)] = 0
+    autopilot_component_id: Annotated[int, In(0, 255)] = 0
     velocity_message: Literal["vision_position_delta", "vision_speed_estimate", "odometry"] = "vision_speed_estimate"
     ap_vis_verr_min_m_s: Annotated[float, In(0.0, 100.0, lo_open=True)] = 0.1
     ap_vis_verr_max_m_s: Annotated[float, In(0.0, 100.0, lo_open=True)] = 0.5
@@ -581,6 +585,8 @@ class TelemetryGuard:
         self.clock = clock
         self.rejected: dict[str, int] = {}
         self.accepted: dict[str, int] = {}
+        #: the autopilot's (system, component): the only sender telemetry is taken from (nav.hygiene)
+        self.senders = AutopilotSenders(cfg.autopilot_system_id, cfg.autopilot_component_id)
         self.link_clock = LinkClock(cfg.clock_window_s, clock)
         #: per kind: t_us = autopilot us + offset_us (the companion logs every new one, clock_sync.csv)
         self._sync: dict[str, StreamClock] = {}
@@ -657,10 +663,20 @@ class TelemetryGuard:
             self.used[kind] = name
         return True
 
-    def message(self, name: str, f: dict[str, Any]) -> Sample | None:
+    def message(self, name: str, f: dict[str, Any], sender: tuple[int, int] | None = None) -> Sample | None:
         """A sample from one message's fields (MAVSDK ``MavlinkDirect`` JSON or pymavlink ``to_dict``), or None
-        (not a preferred source now, rejected, or a message that only updates the air data)."""
+        (not a preferred source now, rejected, or a message that only updates the air data).  With ``sender``
+        (system, component), only the autopilot's messages are taken and its HEARTBEAT tells who it is
+        (:class:`nav.hygiene.AutopilotSenders`)."""
         kind = self._kind_of.get(name)
+        if sender is not None:
+            if name == "HEARTBEAT":
+                self.senders.heartbeat(*sender, int(f.get("autopilot", 8)), int(f.get("type", 0)))
+                return None
+            why = self.senders.check(name, *sender)
+            if why:
+                self._reject(kind or "tracking", why)
+                return None
         if kind is None:
             return self.tracking(f) if name == "CAMERA_TRACKING_IMAGE_STATUS" else None
         try:
@@ -984,9 +1000,11 @@ class CompanionLink:
             return False
         self._system = system
         self.target_system = await system.get_system_id()
+        self.guard.senders.discovered(self.target_system, await system.component_ids())
         self._direct = MavlinkDirectAsync(system)
         self._mocap = MocapAsync(system)
-        names = [n for kind_names in SOURCES.values() for n in kind_names] + ["CAMERA_TRACKING_IMAGE_STATUS"]
+        names = [n for kind_names in SOURCES.values() for n in kind_names] + ["CAMERA_TRACKING_IMAGE_STATUS",
+                                                                             "HEARTBEAT"]
         self._tasks = [asyncio.ensure_future(self._pump(self._direct.subscribe_message(n), self._converter(n)))
                        for n in names]
         self._tasks.append(asyncio.ensure_future(self._watch(system)))
@@ -998,7 +1016,7 @@ class CompanionLink:
 
     def _converter(self, name: str) -> Callable[[Any], Sample | None]:
         g = self.guard
-        return lambda m: g.message(name, json.loads(m.fields_json))
+        return lambda m: g.message(name, json.loads(m.fields_json), (int(m.system_id), int(m.component_id)))
 
     async def _request_rates(self) -> None:
         """Ask for each kind's rate (module docstring); log what was granted and tell the ground station."""

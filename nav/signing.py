@@ -7,7 +7,10 @@ MAVLink 2 signing protocol (HMAC-SHA-256 truncated to 48 bits, timestamps agains
 Key file: 32 raw bytes, or 64 hexadecimal characters, or a passphrase whose SHA-256 is the key (as MAVProxy's
 ``signing setup PASSPHRASE`` does).  When signing is enabled, unsigned or badly signed *commands* (COMMAND_LONG,
 COMMAND_INT, SET_MODE, ...) are refused and counted; unsigned telemetry-like messages listed in
-:data:`UNSIGNED_OK` (HEARTBEAT, RADIO_STATUS) are accepted, as ArduPilot does for a radio's own messages.
+:data:`UNSIGNED_OK` (HEARTBEAT, RADIO_STATUS) are accepted, as ArduPilot does for a radio's own messages.  Without a
+key the endpoint warns at start that anyone who can reach it can command the companion.  Signed or not, a message
+with target fields comes out of :meth:`CommandEndpoint.poll` only when it is addressed to the companion's own
+system and component (:func:`nav.hygiene.addressed_to`); the others are counted (``not_for_us``) and dropped.
 """
 
 from __future__ import annotations
@@ -21,6 +24,8 @@ from typing import Any
 
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402  (MAVLINK20 must be set before import)
+
+from nav.hygiene import addressed_to  # noqa: E402
 
 log = logging.getLogger(__name__)
 
@@ -51,13 +56,15 @@ class SignedLinkStats:
     accepted: dict[str, int] = field(default_factory=dict)
     refused_unsigned: int = 0
     bad_data: int = 0
+    not_for_us: int = 0
 
 
 class CommandEndpoint:
     """A pymavlink endpoint for ground-station commands, optionally signed.
 
-    ``poll()`` returns the accepted messages waiting on the socket; with a key, unsigned or badly signed messages
-    other than :data:`UNSIGNED_OK` never come out of it (pymavlink raises "Invalid signature"; we count them).
+    ``poll()`` returns the accepted messages waiting on the socket that are addressed to ``source_system`` /
+    ``source_component`` (the companion's own ids); with a key, unsigned or badly signed messages other than
+    :data:`UNSIGNED_OK` never come out of it (pymavlink raises "Invalid signature"; we count them).
     """
 
     def __init__(self, url: str, key: bytes | None, source_system: int = 1, source_component: int = 191) -> None:
@@ -65,6 +72,10 @@ class CommandEndpoint:
                                                dialect="ardupilotmega")
         self.stats = SignedLinkStats()
         self.signed = key is not None
+        self.system_id, self.component_id = int(source_system), int(source_component)
+        if key is None:
+            log.warning("ground-station link %s is NOT signed: anyone who can reach it can command the companion "
+                        "(give a signing key to refuse unsigned commands)", url)
         if key is not None:
             if len(key) != KEY_BYTES:
                 raise ValueError(f"signing key must be {KEY_BYTES} bytes, got {len(key)}")
@@ -93,6 +104,11 @@ class CommandEndpoint:
             kind = msg.get_type()
             if kind == "BAD_DATA":
                 self.stats.bad_data += 1
+                continue
+            if not addressed_to(msg, self.system_id, self.component_id):
+                self.stats.not_for_us += 1
+                log.debug("dropped %s addressed to %s/%s, not to us (%d/%d)", kind, getattr(msg, "target_system", "-"),
+                          getattr(msg, "target_component", "-"), self.system_id, self.component_id)
                 continue
             self.stats.accepted[kind] = self.stats.accepted.get(kind, 0) + 1
             out.append(msg)
