@@ -20,14 +20,17 @@ judges it against what the airframe can do, each test with a named threshold in 
 ``attitude rate disagrees with the gyro``
     an attitude sample whose change since the last accepted one, as body rates, differs by more than
     ``gyro_ahrs_max_diff_rad_s`` from the mean of the gyro samples accepted in between (a jump of the AHRS).
+``attitude rate jump (no gyro to compare)``
+    the same without a recent gyro sample (the IMU stream lost): the rate against the AHRS's own last rate.
 
 The reference is the last accepted sample of the kind; the comparison is skipped only for the first sample and
 after a gap of the stream (no sample of the kind, accepted or not, for ``plausibility_max_gap_s``: a link loss),
 so a burst of rejected samples cannot age the reference away.  A genuine step must not lock a stream out: when
 ``plausibility_confirm_samples`` consecutive samples of one kind have been rejected and agree with each other
-(IMU: within the jump thresholds of the first of them; attitude: always), the last of them is accepted and becomes
-the new reference (counted as ``reanchored``).  A step larger than the thresholds so costs the samples before it
-was confirmed (2 at the default: 8 ms at the simulator's 240 Hz, 40 ms at 50 Hz).
+(IMU: each within the jump thresholds of the first of them; attitude: each passing the rate test against the one
+before it), the last of them is accepted and becomes the new reference (counted as ``reanchored``).  A step
+larger than the thresholds so costs the samples before it was confirmed (2 at the default: 8 ms at the simulator's
+240 Hz, 40 ms at 50 Hz).
 
 Every rejection is counted by kind and reason in :attr:`SamplePlausibility.status` and written to the
 ``samples_rejected`` stream (``t_us``, ``kind``, ``reason``, ``excess``: the largest difference found, in the
@@ -130,7 +133,7 @@ class SamplePlausibility:
         self._att_seen_us: int | None = None
         self._ahrs_rate: Vec3 | None = None
         self._ahrs_rate_t_us = -(2**62)
-        self._att_run = 0
+        self._att_run: list[AttitudeSample] = []
 
     # ------------------------------------------------------------------------------------------------ IMU
     def imu(self, s: ImuSample) -> bool:
@@ -200,34 +203,54 @@ class SamplePlausibility:
         t = int(s.t_us)
         prev = self._att
         seen, self._att_seen_us = self._att_seen_us, t
-        reason, excess = "", 0.0
-        rate: Vec3 | None = None
         if prev is not None and t <= prev.t_us:
-            reason, excess = "stamp not increasing", (prev.t_us - t) / US_PER_S
-        elif prev is not None and seen is not None and t - seen <= self._gap_us:
-            rate = ahrs_body_rate(prev, s)
-            gyro = self._gyro_mean(t)
-            if self._ahrs_diff > 0.0 and rate is not None and gyro is not None:
-                d = _max_abs_diff(rate, gyro)
-                if d > self._ahrs_diff:
-                    reason, excess = "attitude rate disagrees with the gyro", d
-        if reason and reason != "stamp not increasing":
-            self._att_run += 1
-            if self._att_run >= self._confirm:
-                self._count_reanchor("attitude", t)
-                reason, rate = "", None       # a new reference: no rate from the rejected run's start
+            self._reject("attitude", t, "stamp not increasing", (prev.t_us - t) / US_PER_S)
+            return False
+        reason, excess, rate = "", 0.0, None
+        if prev is not None and seen is not None and t - seen <= self._gap_us:
+            reason, excess, rate = self._attitude_test(prev, s)
+        if reason and self._confirmed_attitude(s):
+            self._count_reanchor("attitude", t)
+            reason, rate = "", None               # a new reference: no rate from the rejected run's start
         if reason:
             self._reject("attitude", t, reason, excess)
             return False
-        self._att_run = 0
+        self._att_run.clear()
         self._att = s
-        if rate is not None:
-            self._ahrs_rate, self._ahrs_rate_t_us = rate, t
-        else:
-            self._ahrs_rate = None
+        self._ahrs_rate = rate
+        self._ahrs_rate_t_us = t
         self._gyro_sum = [0.0, 0.0, 0.0]
         self._gyro_n = 0
         self.status.accepted["attitude"] += 1
+        return True
+
+    def _attitude_test(self, prev: AttitudeSample, s: AttitudeSample) -> tuple[str, float, Vec3 | None]:
+        """(reason or "", excess, the AHRS rate from ``prev`` to ``s``): the rate against the gyro accepted since
+        ``prev``; without a recent gyro sample (the IMU stream lost) against the AHRS's own last rate, which cannot
+        jump either."""
+        rate = ahrs_body_rate(prev, s)
+        if rate is None or self._ahrs_diff <= 0.0:
+            return "", 0.0, rate
+        gyro = self._gyro_mean(s.t_us)
+        if gyro is not None:
+            d = _max_abs_diff(rate, gyro)
+            return ("attitude rate disagrees with the gyro" if d > self._ahrs_diff else ""), d, rate
+        own = self._ahrs_rate
+        if own is not None and s.t_us - self._ahrs_rate_t_us <= self._gap_us:
+            d = _max_abs_diff(rate, own)
+            return ("attitude rate jump (no gyro to compare)" if d > self._ahrs_diff else ""), d, rate
+        return "", 0.0, rate
+
+    def _confirmed_attitude(self, s: AttitudeSample) -> bool:
+        """The rejected run so far plus ``s``: confirmed when long enough and each of its samples passes the rate
+        test against the one before it (the AHRS moved on, not scattered garbage)."""
+        run = self._att_run
+        if run and (s.t_us - run[-1].t_us > self._gap_us or self._attitude_test(run[-1], s)[0]):
+            run.clear()
+        run.append(s)
+        if len(run) < self._confirm:
+            return False
+        run.clear()
         return True
 
     def _gyro_mean(self, t: int) -> Vec3 | None:

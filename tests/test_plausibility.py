@@ -178,3 +178,52 @@ def test_one_spoofed_imu_sample_in_range_does_not_move_the_velocity(gsoe_config,
     else:
         assert err > 1.0, err                     # the harm the tests prevent
         assert not rejected
+
+
+def test_without_a_gyro_an_ahrs_jump_is_judged_against_the_ahrs_own_rate():
+    """The IMU stream lost (a link that dropped it): a jumped attitude still cannot pass."""
+    p = SamplePlausibility(PipelineConfig())
+    ok = [p.attitude(AttitudeSample(k * 20_000, 0.01 * k, 0.0, 0.5)) for k in range(1, 20)]   # 0.5 rad/s roll
+    ok.append(p.attitude(AttitudeSample(20 * 20_000, 0.2 + 0.6, 0.0, 0.5)))                   # +0.6 rad in 20 ms
+    ok.append(p.attitude(AttitudeSample(21 * 20_000, 0.21, 0.0, 0.5)))
+    assert all(ok[:19]) and ok[19:] == [False, True]
+    assert p.status.rejected == {"attitude: attitude rate jump (no gyro to compare)": 1}
+
+
+def test_a_burst_of_spoofed_attitudes_never_takes_over():
+    """Three spoofed attitudes (random jumps) between every two genuine ones, for 5 s: consecutive rejections, but
+    they never agree with each other, so none is accepted and every genuine sample is."""
+    rng = np.random.default_rng(8)
+    genuine = turning_flight(8.0, np.random.default_rng(9))
+    p = SamplePlausibility(PipelineConfig())
+    spoofs_ok = []
+    genuine_ok = []
+    for s in genuine:
+        if isinstance(s, ImuSample):
+            p.imu(s)
+            continue
+        genuine_ok.append(p.attitude(s))
+        if 2 * US <= s.t_us < 7 * US:
+            for k in range(3):
+                j = rng.uniform(0.2, 1.5) * rng.choice([-1.0, 1.0])
+                axis = int(rng.integers(3))
+                spoofs_ok.append(p.attitude(AttitudeSample(
+                    s.t_us + 1000 * (k + 1), s.roll_rad + j * (axis == 0), s.pitch_rad + 0.5 * j * (axis == 1),
+                    s.yaw_rad + j * (axis == 2))))
+    assert not any(spoofs_ok) and len(spoofs_ok) == 3 * 5 * IMU_HZ // ATT_EVERY
+    assert all(genuine_ok) and p.status.reanchored == {}
+
+
+def test_a_lasting_ahrs_step_is_accepted_once_confirmed():
+    """The AHRS re-converges: its yaw steps by 0.3 rad and stays.  Two samples are refused, the third confirms."""
+    cfg = PipelineConfig()
+    p = SamplePlausibility(cfg)
+    for k in range(1, 50):
+        assert p.imu(ImuSample(k * 20_000 - 1000, np.zeros(3), np.array([0.0, 0.0, -G])))
+        assert p.attitude(AttitudeSample(k * 20_000, 0.0, 0.0, 1.0))
+    ok = []
+    for k in range(50, 60):
+        p.imu(ImuSample(k * 20_000 - 1000, np.zeros(3), np.array([0.0, 0.0, -G])))
+        ok.append(p.attitude(AttitudeSample(k * 20_000, 0.0, 0.0, 1.3)))
+    assert ok == [False, False] + [True] * 8
+    assert p.status.reanchored == {"attitude": 1}
