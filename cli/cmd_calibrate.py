@@ -1,9 +1,11 @@
-"""``gsoe calibrate IMAGES... --board 8x6 --square SIZE --model fisheye --out FILE [--holdout N]``
+"""``gsoe calibrate IMAGES... --board 8x6 --square SIZE --model fisheye|pinhole --out FILE [--holdout N]
+[--mount-rpy-deg R P Y]``
 
 Reads chessboard images, finds the boards (:func:`gsoe.calibration.find_board`), calibrates
 (:func:`gsoe.calibration.calibrate`), prints the RMS and per-image reprojection errors (and those of the last
 ``N`` boards, held out of the calibration), and writes a camera file in the format of
-``config/camera/*.toml`` (loadable by :func:`pipeline.config.load_camera`).  Exit status: 0 written, 1 too few
+``config/camera/*.toml`` (loadable by :func:`pipeline.config.load_camera`), with the mount given by
+``--mount-rpy-deg`` (a board calibration does not observe it).  Exit status: 0 written, 1 too few
 boards or the calibration failed, 2 bad input (missing or unreadable image, mixed image sizes).
 """
 
@@ -18,6 +20,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from common.config import ConfigError
 from gsoe.calibration import MIN_BOARDS, CalibrationError, calibrate, find_board, reprojection_errors
 from gsoe.config import CameraConfig
 
@@ -65,6 +68,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="leave the last N found boards out of the calibration and report their errors")
     parser.add_argument("--focal-guess", type=_positive, default=None,
                         help="fisheye starting focal length in pixels (default: image width / pi)")
+    parser.add_argument("--mount-rpy-deg", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("R", "P", "Y"),
+                        help="the camera's mount on top of the nominal belly mounting (roll, pitch, yaw, deg; any "
+                             "rotation, e.g. an oblique camera), written to the camera file; default 0 0 0")
 
 
 def camera_toml(camera: CameraConfig, header: list[str]) -> str:
@@ -134,8 +140,8 @@ def run(args: argparse.Namespace) -> int:
     held_set = found[len(found) - args.holdout:]
     try:
         result = calibrate([c for _, c in cal_set], board, args.square, image_size, args.model,
-                           focal_guess_px=args.focal_guess)
-    except CalibrationError as e:
+                           focal_guess_px=args.focal_guess, mount_rpy_deg=tuple(args.mount_rpy_deg))
+    except (CalibrationError, ConfigError) as e:
         return _fail(1, f"calibration failed: {e}; refusing to write {args.out}")
 
     cam = result.camera
@@ -162,7 +168,8 @@ def run(args: argparse.Namespace) -> int:
         f"Camera file written by `gsoe calibrate` ({args.model} model, {len(result.used_indices)} boards "
         f"{board_txt}, square {args.square:g}).",
         f"Images: {', '.join(p.name for p, _ in cal_set)}.",
-        f"RMS reprojection error {result.rms_px:.3f} px.  mount_rpy_deg is not observed by a board calibration.",
+        f"RMS reprojection error {result.rms_px:.3f} px.  mount_rpy_deg is not observed by a board calibration "
+        "(--mount-rpy-deg).",
     ]
     if result.fov_note:
         header.append(f"Note: {result.fov_note}.")

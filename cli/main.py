@@ -19,6 +19,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "bench": ("cli.cmd_bench", "benchmark the per-frame optical pipeline, renderer and EKF step"),
     "sim": ("cli.cmd_sim", "fly a simulated scenario (default: the paper's SIL flight) and report"),
     "replay": ("cli.cmd_replay", "replay a real flight log (.tlog, .bin, .ulg) through the EKF"),
+    "replay-frames": ("cli.cmd_replay_frames", "a real image sequence through the optical pipeline, against its "
+                                               "reference velocity"),
     "companion": ("cli.cmd_companion", "run the companion app next to an autopilot"),
     "montecarlo": ("cli.cmd_montecarlo", "run a seeded Monte Carlo campaign of simulated flights"),
 }

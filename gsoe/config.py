@@ -22,7 +22,8 @@ class CameraConfig:
 
     ``model`` is ``"fisheye"`` (OpenCV ``cv2.fisheye``, Kannala-Brandt, ``dist = [k1, k2, k3, k4]``) or
     ``"pinhole"`` (OpenCV radial-tangential, ``dist = [k1, k2, p1, p2, k3]``).  ``mount_rpy_deg`` is the camera's
-    small misalignment in the body frame on top of the nominal belly mounting (see :mod:`gsoe`).
+    mounting rotation in the body frame on top of the nominal belly mounting (see :mod:`gsoe`): roll, pitch, yaw of
+    the 3-2-1 sequence, any rotation (a small misalignment, or an oblique or turned camera; pitch within +-90 deg).
     ``hfov_deg``/``vfov_deg`` are the nominal fields of view the paper's eq. 2-3 and 10-11 use.
     """
 
@@ -53,7 +54,8 @@ class CameraConfig:
         for i, d in enumerate(self.dist):
             require(math.isfinite(d) and abs(d) < 10.0, f"dist[{i}]", f"must be finite and |d| < 10, got {d!r}")
         for i, a in enumerate(self.mount_rpy_deg):
-            in_range(a, -30.0, 30.0, f"mount_rpy_deg[{i}]")
+            in_range(a, -180.0, 180.0, f"mount_rpy_deg[{i}]")
+        in_range(self.mount_rpy_deg[1], -90.0, 90.0, "mount_rpy_deg[1]")
 
 
 @dataclass(frozen=True)
@@ -67,6 +69,13 @@ class StabConfig:
     coarse grid of projected rays from which the sampling map is interpolated.  ``use_gyro``: compose the template's
     attitude from the base attitude and the gyro-integrated rotation since the base snapshot; ``gyro_bias_tau_s``:
     time constant of the gyro-bias complementary filter (0: off).
+
+    ``roi_centre``: where on the ground the base image lies.  ``"nadir"`` (the paper): around the point under the
+    aircraft, the template at the current nadir, so it migrates across the base.  ``"view"``: around the ground
+    point the raw image's centre looks at (an oblique or narrow camera that never sees the nadir); each template
+    is cut where the base's centre is predicted to lie in the current frame, so it lands near the base's centre
+    and the base only has to cover the prediction's error (see :mod:`gsoe.cycle`).  Both report the nadir's
+    migration.
     """
 
     base_cross_px: int = 121
@@ -80,6 +89,7 @@ class StabConfig:
     use_gyro: bool = True
     gyro_bias_tau_s: float = 20.0
     scale_template_to_base: bool = True
+    roi_centre: Literal["nadir", "view"] = "nadir"
 
     def __post_init__(self) -> None:
         in_range(self.base_cross_px, 9, 2001, "base_cross_px")
@@ -135,6 +145,11 @@ class CycleConfig:
     invalid for the same reason), and no new base is tried for ``featureless_retry_s`` (0: every frame): the
     ground moves a small fraction of the base's footprint meanwhile, and a companion computer over the sea stops
     sampling and matching every frame for nothing.
+
+    ``step_prediction``: how the previous step predicts the next one (the template's expected position, the data
+    filter and the step gate).  ``"per_frame"``: the same step again (a camera at a steady rate); ``"per_second"``:
+    the same velocity, so the step scales with the time since the previous frame (irregular frame intervals, a
+    low-rate sequence with dropped frames).  The gates then compare the step with that prediction.
     """
 
     rate_hz: float = 30.0
@@ -144,6 +159,7 @@ class CycleConfig:
     data_filter_zeta_px: float = 4.0
     step_gate_px: float = 2.0
     featureless_retry_s: float = 0.1
+    step_prediction: Literal["per_frame", "per_second"] = "per_frame"
 
     def __post_init__(self) -> None:
         in_range(self.rate_hz, 1.0, 240.0, "rate_hz")

@@ -17,6 +17,17 @@ A cycle ends (and the next one starts from the same frame, so no frame is lost) 
 
 ``template_start = "trailing"`` puts the base snapshot's nadir near the trailing (bottom) edge of the base image,
 so the template can travel almost the whole base image: the baseline, and so the angle resolution, grows.
+
+``stab.roi_centre = "view"`` (an oblique or narrow camera that does not see the nadir, a low frame rate with large
+motion per frame): the base image lies around the ground point of the raw image's centre, ``O_b`` stabilised
+pixels (forward, right) from the base nadir, and each frame's template is cut ``O_k = O_b + A - D_pred`` from the
+current nadir, where ``D_pred`` is the predicted migration and ``A`` the base's *anchor*: the most textured
+template-sized spot within ``VIEW_ANCHOR_FRACTION`` of the search range of the base's centre (water or a bare field
+at the centre would fail every match of the cycle).  The template then shows the ground at the anchor and lands
+there, give or take the prediction's error.  A match at base pixel ``(x, y)`` then means a migration
+``(x - u0 + O_b.right - O_k.right, v0 - y + O_b.fwd - O_k.fwd)``; the cycle keeps positions in those nadir
+terms, so its steps mean what they mean in ``"nadir"`` mode.  The critical position becomes: the next
+predicted template would leave the raw frame.
 """
 
 from __future__ import annotations
@@ -24,6 +35,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -39,6 +51,9 @@ from gsoe.quat import Quat
 from gsoe.stabilise import Frame, VirtualNadirCamera
 
 _NO_QUALITY = MatchQuality(psr=0.0, texture_std=0.0, ssd_per_px=math.nan, valid=False)
+#: "view" mode: the anchor lies within this fraction of the search range ((base side - template side) / 2) of the base
+#: image's centre; the rest of the range is left for the prediction's error.
+VIEW_ANCHOR_FRACTION = 1.0 / 3.0
 
 
 def base_reference_px(cfg: GsoeConfig) -> tuple[float, float]:
@@ -77,6 +92,14 @@ class _Cycle:
     last_step_xy: tuple[float, float] | None
     n_valid: int
     carried_step_xy: tuple[float, float] | None = None
+    # "view" mode: the base image's ground centre from the base nadir, and the anchor from the base image's centre,
+    # stabilised px (forward, right)
+    offset_b: tuple[float, float] = (0.0, 0.0)
+    anchor: tuple[float, float] = (0.0, 0.0)
+    # step_prediction "per_second": the time of the last valid position and the intervals the steps spanned
+    last_t_us: int = 0
+    last_step_dt_us: int = 0
+    carried_step_dt_us: int = 0
 
 
 class GsoeEstimator:
@@ -99,6 +122,11 @@ class GsoeEstimator:
         self._pitch_lim = math.radians(s.pitch_limit_deg)
         self._max_cycle_us = int(cfg.cycle.max_cycle_s * US_PER_S)
         self._featureless_retry_us = int(round(cfg.cycle.featureless_retry_s * US_PER_S))
+        self._view = s.roi_centre == "view"
+        self._per_second = cfg.cycle.step_prediction == "per_second"
+        # "view" mode: the last valid step as a rate, rotated to north/east (px/s), for predicting the template's
+        # position across cycles that measured nothing (the gates never use it)
+        self._last_rate_ne: tuple[float, float] | None = None
         self._cycle: _Cycle | None = None
         self._next_id = 0
         # featureless ground: no new base before this time (see CycleConfig)
@@ -121,7 +149,13 @@ class GsoeEstimator:
         reads, grown by ``margin_px`` (a template of the same cycle lies inside it).  For renderers that draw
         only what the estimator reads; None when the base image would leave the raw frame."""
         yaw = math.atan2(R_nb[1, 0], R_nb[0, 0])
-        mx, my, ok = self.vcam.base.sample_map(self.vcam.R_cn(R_nb), yaw, 1.0 / self.focal_px)
+        offset = (0.0, 0.0)
+        if self._view:
+            view = self.vcam.view_offset_px(R_nb, yaw)
+            if view is None:
+                return None
+            offset = view
+        mx, my, ok = self.vcam.base.sample_map(self.vcam.R_cn(R_nb), yaw, 1.0 / self.focal_px, offset)
         if not ok:
             return None
         w, h = self.camera.size_px
@@ -177,17 +211,31 @@ class GsoeEstimator:
         if not self.cfg.stab.scale_template_to_base:
             ratio = 1.0
         yaw_now = math.atan2(R_nb[1, 0], R_nb[0, 0])
-        tpl = self.vcam.sample_template(image, R_nb, c.base_yaw_rad, ratio)
+        exp_last = self._expected_step(c.last_step_xy, c.last_step_dt_us, t_us - c.last_t_us)
+        exp_carried = self._expected_step(c.carried_step_xy, c.carried_step_dt_us, t_us - c.last_t_us)
+        # the template's expected position (nadir terms); "view" mode also trusts a step carried from the last cycle,
+        # else the last rate measured
+        exp_pred = exp_last if exp_last is not None or not self._view else (
+            exp_carried if exp_carried is not None else self._rate_step(c, t_us))
+        pred = c.last_xy if exp_pred is None else (c.last_xy[0] + exp_pred[0], c.last_xy[1] + exp_pred[1])
+        if self._view:
+            off_k = self._template_offset(c, pred)
+            tpl = self.vcam.sample_template(image, R_nb, c.base_yaw_rad, ratio, off_k)
+        else:
+            tpl = self.vcam.sample_template(image, R_nb, c.base_yaw_rad, ratio)
         c.step += 1
         if not tpl.valid:
             return [self._step(t_us, c, c.last_xy, _NO_QUALITY, False, yaw_now, rel)] + self._restart(
                 t_us, image, att, height_agl_m, c)
-        pred = c.last_xy if c.last_step_xy is None else (c.last_xy[0] + c.last_step_xy[0],
-                                                          c.last_xy[1] + c.last_step_xy[1])
-        res = match_template(c.base_image, tpl.image, self.cfg.match, pred)
-        xy = (res.x_px, res.y_px)
+        if self._view:
+            start = (self.ref_uv[0] + c.anchor[1], self.ref_uv[1] - c.anchor[0])
+            res = match_template(c.base_image, tpl.image, self.cfg.match, start)
+            xy = (res.x_px + c.offset_b[1] - off_k[1], res.y_px - c.offset_b[0] + off_k[0])
+        else:
+            res = match_template(c.base_image, tpl.image, self.cfg.match, pred)
+            xy = (res.x_px, res.y_px)
         step_xy = (xy[0] - c.last_xy[0], xy[1] - c.last_xy[1])
-        prev = c.last_step_xy if c.last_step_xy is not None else c.carried_step_xy
+        prev = exp_last if exp_last is not None else exp_carried
         cc = self.cfg.cycle
         filtered = prev is not None and (
             (cc.data_filter and data_filter_fires(prev, step_xy, cc.data_filter_zeta_px))
@@ -197,15 +245,66 @@ class GsoeEstimator:
         if not valid:
             return out + self._restart(t_us, image, att, height_agl_m, c)
         c.n_valid += 1
+        if self._view and t_us > c.last_t_us:
+            cy, sy = math.cos(c.base_yaw_rad), math.sin(c.base_yaw_rad)
+            fwd, right = -step_xy[1], step_xy[0]
+            k = US_PER_S / (t_us - c.last_t_us)
+            self._last_rate_ne = ((fwd * cy - right * sy) * k, (fwd * sy + right * cy) * k)
         c.last_step_xy = step_xy
+        c.last_step_dt_us = t_us - c.last_t_us
+        c.last_t_us = t_us
         c.last_xy = xy
         nxt = (xy[0] + step_xy[0], xy[1] + step_xy[1])
-        at_edge = not (self._u_lim[0] <= nxt[0] <= self._u_lim[1] and self._v_lim[0] <= nxt[1] <= self._v_lim[1])
+        if self._view:
+            at_edge = not self.vcam.template_fits(R_nb, c.base_yaw_rad, ratio, self._template_offset(c, nxt))
+        else:
+            at_edge = not (self._u_lim[0] <= nxt[0] <= self._u_lim[1]
+                           and self._v_lim[0] <= nxt[1] <= self._v_lim[1])
         if at_edge or t_us - c.base_t_us >= self._max_cycle_us:
             return out + self._restart(t_us, image, att, height_agl_m, c)
         return out
 
     # ------------------------------------------------------------------------------------------------------
+    def _expected_step(self, step: tuple[float, float] | None, step_dt_us: int,
+                       dt_us: int) -> tuple[float, float] | None:
+        """The step expected over the next ``dt_us`` from a step that spanned ``step_dt_us`` (``step_prediction``)."""
+        if step is None or not self._per_second or step_dt_us <= 0:
+            return step
+        k = dt_us / step_dt_us
+        return step[0] * k, step[1] * k
+
+    def _rate_step(self, c: _Cycle, t_us: int) -> tuple[float, float] | None:
+        """The step (image x, y of cycle ``c``) the last measured rate predicts since ``c``'s last position."""
+        if self._last_rate_ne is None:
+            return None
+        n, e = self._last_rate_ne
+        cy, sy = math.cos(c.base_yaw_rad), math.sin(c.base_yaw_rad)
+        dt_s = (t_us - c.last_t_us) / US_PER_S
+        fwd, right = (n * cy + e * sy) * dt_s, (-n * sy + e * cy) * dt_s
+        return right, -fwd
+
+    def _template_offset(self, c: _Cycle, xy: tuple[float, float]) -> tuple[float, float]:
+        """"view" mode: the template's offset from the current nadir (forward, right; base px) that shows the
+        base's centre when the nadir has migrated to ``xy`` (nadir terms)."""
+        u0, v0 = self.ref_uv
+        return c.offset_b[0] + c.anchor[0] - (v0 - xy[1]), c.offset_b[1] + c.anchor[1] - (xy[0] - u0)
+
+    def _anchor(self, base: NDArray[np.float32]) -> tuple[float, float]:
+        """"view" mode: the most textured template-sized spot near the base image's centre (forward, right of it;
+        the module docstring)."""
+        s = self.cfg.stab
+        t = s.template_px
+        u0, v0 = (int(round(v)) for v in self.ref_uv)
+        ru = int((s.base_cross_px - t) / 2 * VIEW_ANCHOR_FRACTION)
+        rv = int((s.base_along_px - t) / 2 * VIEW_ANCHOR_FRACTION)
+        half = (t - 1) // 2
+        region = base[v0 - rv - half:v0 + rv + half + 1, u0 - ru - half:u0 + ru + half + 1].astype(np.float64)
+        mean = cv2.boxFilter(region, -1, (t, t), normalize=True, borderType=cv2.BORDER_ISOLATED)
+        sq = cv2.boxFilter(region * region, -1, (t, t), normalize=True, borderType=cv2.BORDER_ISOLATED)
+        var = (sq - mean * mean)[half:half + 2 * rv + 1, half:half + 2 * ru + 1]
+        iv, iu = np.unravel_index(int(np.argmax(var)), var.shape)
+        return float(rv - iv), float(iu - ru)
+
     def _attitude_ok(self, att: Quat) -> bool:
         roll, pitch, _ = quat.to_euler321(att)
         return abs(roll) <= self._roll_lim and abs(pitch) <= self._pitch_lim
@@ -220,6 +319,7 @@ class GsoeEstimator:
         # (the ground speed changed during a stretch without matches) cannot lock the gate
         step = old.last_step_xy
         if new is not None and step is not None:
+            new.carried_step_dt_us = old.last_step_dt_us
             # image x = right, y = -forward; rotate the ground step into the new base heading
             d = new.base_yaw_rad - old.base_yaw_rad
             fwd, right = -step[1], step[0]
@@ -232,7 +332,16 @@ class GsoeEstimator:
         # the base attitude labels the whole cycle (its heading error is the optical course's): average the AHRS
         att = self.buffer.compensated_at(t_us, smooth=True) or att
         yaw0 = quat.to_euler321(att)[2]
-        patch = self.vcam.sample_base(image, quat.to_matrix(att), yaw0)
+        offset_b = anchor = (0.0, 0.0)
+        if self._view:
+            view = self.vcam.view_offset_px(quat.to_matrix(att), yaw0)
+            if view is None:
+                return []
+            offset_b = view
+            patch = self.vcam.sample_base(image, quat.to_matrix(att), yaw0, offset_b)
+            anchor = self._anchor(patch.image) if patch.valid else anchor
+        else:
+            patch = self.vcam.sample_base(image, quat.to_matrix(att), yaw0)
         if not patch.valid:
             return []
         # the base's texture, once: it decides whether a cycle can run (the matcher's own criterion; every template
@@ -249,7 +358,8 @@ class GsoeEstimator:
         c = _Cycle(cycle_id=self._next_id, base_t_us=t_us, base_yaw_rad=yaw0, q_nb0=att, base_image=patch.image,
                    height_agl_m=height_agl_m if h_ok else math.nan,
                    gsd_m_px=height_agl_m / self.focal_px if h_ok else math.nan,
-                   step=0, last_xy=self.ref_uv, last_step_xy=None, n_valid=0)
+                   step=0, last_xy=self.ref_uv, last_step_xy=None, n_valid=0, offset_b=offset_b, anchor=anchor,
+                   last_t_us=t_us)
         self._next_id += 1
         self._cycle = c
         q = MatchQuality(psr=math.inf, texture_std=base_std, ssd_per_px=0.0, valid=True)

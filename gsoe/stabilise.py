@@ -5,19 +5,25 @@ A pixel ``(u, v)`` of a stabilised image (frame ``s``, see :mod:`gsoe`) looks at
 by the cycle's base heading; ``g`` is the ground sample distance and ``(u0, v0)`` the pixel of the reference.
 For the base image the reference is the nadir point at the base snapshot; for a template it is the nadir point
 at the current frame.  The ray to that ground point, in NED, is rotated into the body by the full attitude
-``R_nb`` (roll, pitch *and* yaw relative to the base heading), into the camera by ``R_cb`` and projected through
-the calibrated (fisheye) model into the raw frame; ``cv2.remap`` samples just those pixels.  The raw frame is
-never undistorted as a whole.
+``R_nb`` (roll, pitch *and* yaw relative to the base heading), into the camera by ``R_cb`` (the mount, any
+rotation) and projected through the calibrated model (fisheye or pinhole, :class:`gsoe.camera.CameraModel`) into
+the raw frame; ``cv2.remap`` samples just those pixels.  The raw frame is never undistorted as a whole.
+
+The reference ground point may lie off the nadir by an offset (forward, right, in stabilised pixels of the
+heading frame): ``stab.roi_centre = "view"`` centres the base image on the ground point the raw image's centre
+looks at (:meth:`VirtualNadirCamera.view_offset_px`), which an oblique or narrow camera needs, since it never sees
+the nadir.  Over flat ground an offset only moves the window: the image is the same orthographic map.
 
 Cost: rays are projected only on a coarse grid (every ``map_grid_px`` pixels plus the last row/column) and the
 sampling map is interpolated bilinearly between them with two small precomputed interpolation matrices
-(``A_v @ grid @ A_u.T``).  Fisheye distortion is smooth on that scale (the test bounds the interpolation error).
+(``A_v @ grid @ A_u.T``).  Lens distortion is smooth on that scale (the test bounds the interpolation error).
 
 The paper's own cropping point (eq. 2-3, roll and pitch only) is :func:`gsoe.equations.nadir_pixel_paper`.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -29,6 +35,9 @@ from gsoe.camera import CameraModel
 from gsoe.matching import to_intensity
 from gsoe.rotation import R_z
 
+#: A view-centred base image (``stab.roi_centre = "view"``) needs the raw image's centre ray at least this far below
+#: the horizon (20 deg: the ground point lies within 2.7 heights of the nadir, where flat ground is a fair model).
+VIEW_MIN_DEPRESSION_RAD = math.radians(20.0)
 
 def _interp_matrix(n_out: int, step: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Grid node positions (0, step, 2 step, ..., n_out - 1) and the (n_out x n_nodes) linear interpolation
@@ -102,8 +111,9 @@ class PatchSampler:
         map_y = (self._A_v @ gy @ self._A_uT).astype(np.float32)
         return map_x, map_y, True
 
-    def sample(self, raw: Frame, R_cn: NDArray[np.float64], base_yaw_rad: float, scale: float) -> Patch:
-        map_x, map_y, ok = self.sample_map(R_cn, base_yaw_rad, scale)
+    def sample(self, raw: Frame, R_cn: NDArray[np.float64], base_yaw_rad: float, scale: float,
+               offset_fwd_right_px: tuple[float, float] = (0.0, 0.0)) -> Patch:
+        map_x, map_y, ok = self.sample_map(R_cn, base_yaw_rad, scale, offset_fwd_right_px)
         if not ok:
             return Patch(np.zeros((self.height_px, self.width_px), np.float32), False)
         if callable(raw):
@@ -130,10 +140,31 @@ class VirtualNadirCamera:
         """NED-to-camera rotation for a body attitude ``R_nb`` (3x3)."""
         return self.camera.R_bc.T @ R_nb.T
 
-    def sample_base(self, raw: Frame, R_nb: NDArray[np.float64], base_yaw_rad: float) -> Patch:
-        return self.base.sample(raw, self.R_cn(R_nb), base_yaw_rad, 1.0 / self.focal_px)
+    def sample_base(self, raw: Frame, R_nb: NDArray[np.float64], base_yaw_rad: float,
+                    offset_fwd_right_px: tuple[float, float] = (0.0, 0.0)) -> Patch:
+        """Base image around the nadir, or ``offset_fwd_right_px`` (stabilised px) away from it."""
+        return self.base.sample(raw, self.R_cn(R_nb), base_yaw_rad, 1.0 / self.focal_px, offset_fwd_right_px)
 
     def sample_template(self, raw: Frame, R_nb: NDArray[np.float64], base_yaw_rad: float,
-                        height_ratio: float) -> Patch:
-        """Template at the current nadir; ``height_ratio = h_base / h_now`` rescales it to the base image's GSD."""
-        return self.template.sample(raw, self.R_cn(R_nb), base_yaw_rad, height_ratio / self.focal_px)
+                        height_ratio: float, offset_fwd_right_px: tuple[float, float] = (0.0, 0.0)) -> Patch:
+        """Template at the current nadir, or ``offset_fwd_right_px`` away from it (in the base image's pixels);
+        ``height_ratio = h_base / h_now`` rescales it to the base image's GSD."""
+        return self.template.sample(raw, self.R_cn(R_nb), base_yaw_rad, height_ratio / self.focal_px,
+                                    offset_fwd_right_px)
+
+    def template_fits(self, R_nb: NDArray[np.float64], base_yaw_rad: float, height_ratio: float,
+                      offset_fwd_right_px: tuple[float, float]) -> bool:
+        """Whether a template at ``offset_fwd_right_px`` from the nadir lies inside the raw frame at ``R_nb``."""
+        return self.template.sample_map(self.R_cn(R_nb), base_yaw_rad, height_ratio / self.focal_px,
+                                        offset_fwd_right_px)[2]
+
+    def view_offset_px(self, R_nb: NDArray[np.float64], base_yaw_rad: float) -> tuple[float, float] | None:
+        """Ground point of the raw image's centre, relative to the nadir, in stabilised pixels (forward, right of
+        ``base_yaw_rad``) at this virtual focal length; None when that ray does not reach the ground at least
+        ``VIEW_MIN_DEPRESSION_RAD`` below the horizon."""
+        w, h = self.camera.size_px
+        ray_c = self.camera.unproject(np.array([[(w - 1) / 2.0, (h - 1) / 2.0]]))[0]
+        ray_h = R_z(base_yaw_rad).T @ (R_nb @ (self.camera.R_bc @ ray_c))
+        if not ray_h[2] > math.sin(VIEW_MIN_DEPRESSION_RAD):
+            return None
+        return float(self.focal_px * ray_h[0] / ray_h[2]), float(self.focal_px * ray_h[1] / ray_h[2])
