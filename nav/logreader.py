@@ -34,11 +34,25 @@ Sources per format (first one present wins)
     =========== ========================================== ========================== ================================
 
 Clock
-    DataFlash and ULog stamp every record with the autopilot's boot clock.  In a tlog most messages carry the
-    boot clock (``time_boot_ms`` or ``time_usec``), some (VFR_HUD, WIND) only the receive time of the tlog
-    header; those are put on the boot clock with the median receive-minus-boot offset of the stamped messages.
-    A boot stamp that disagrees with its receive time by more than ``MAX_CLOCK_RESIDUAL_US`` after removing
-    that offset (autopilot reboot, corrupt frame) is replaced by the shifted receive time, with a warning.
+    DataFlash and ULog stamp every record with the autopilot's boot clock.  In a tlog every sample is placed by
+    the autopilot's own timestamp, never by when the ground station received it (a telemetry link delivers in
+    bursts: messages held for seconds arrive together):
+
+    * messages with ``time_boot_ms`` or a boot ``time_usec`` (ATTITUDE, SCALED_PRESSURE, the IMUs, GPS_RAW_INT,
+      whose ``time_usec`` is the fix's own time) are on the boot clock as they are;
+    * a ``time_usec`` in UNIX time (after 2001) is a second clock, mapped onto the boot clock by the difference of
+      the two clocks' offsets from the receive time;
+    * each clock's offset is a robust fit against the receive time: the *lower envelope* of ``receive - stamp``
+      (the minimum over each ``CLOCK_WINDOW_S`` of receive time: the transport delay is never negative and a burst
+      only adds to it; a burst ends with a message that waited least), a Theil-Sen line through those minima
+      (clock drift; a constant when the log is shorter than three windows);
+    * a message without a timestamp (VFR_HUD, WIND) takes the boot time of the newest stamped message the vehicle
+      sent before it (any type, in the order of the log: the autopilot sends a scheduler slot's messages together,
+      so this is within one slot, 20-100 ms; a burst keeps the order); with none within ``MAX_TRANSPORT_DELAY_US``
+      of receive time before it, the receive time less the fitted offset;
+    * a stamp that arrives earlier than the fit allows (by ``CLOCK_EARLY_TOL_US``) or later than
+      ``MAX_TRANSPORT_DELAY_US`` after it (autopilot reboot, corrupt frame) is not trusted: the message is placed
+      as one without a timestamp, with a warning.
 Airspeed
     ArduPilot logs equivalent airspeed (EAS); ``tas_m_s = eas_m_s * sqrt(rho0 / rho)`` with the density of the
     ISA atmosphere at the logged static pressure (the air temperature is not logged; 10 K of error is 1.7 % of
@@ -69,6 +83,7 @@ from typing import Any, TypeVar
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
+from scipy.stats import theilslopes
 
 from common.angles import wrap_2pi, wrap_pi
 from common.samples import AirspeedSample, AttitudeSample, BaroSample, GnssSample, ImuSample
@@ -88,8 +103,13 @@ WGS84_A_M = 6378137.0  #: WGS-84 semi-major axis
 WGS84_E2 = 6.69437999014e-3  #: WGS-84 first eccentricity squared
 #: A MAVLink ``time_usec`` above this is UNIX time (after 2001-09-09), not time since boot.
 UNIX_TIME_MIN_US = 10**15
-#: A tlog boot stamp further than this from its receive time (after the median offset) is not trusted.
-MAX_CLOCK_RESIDUAL_US = 2_000_000
+#: A tlog stamp received more than this after the clock fit allows (its lower envelope) is not trusted (a reboot,
+#: a corrupt frame); a burst of a telemetry link holds messages back for seconds, not this long.
+MAX_TRANSPORT_DELAY_US = 10_000_000
+#: ... nor one received earlier than the fit allows by more than this (nothing arrives before it is sent).
+CLOCK_EARLY_TOL_US = 200_000
+#: Window of receive time over which the minimum of ``receive - stamp`` is taken (longer than a link's bursts).
+CLOCK_WINDOW_S = 10.0
 #: Undecodable tlog frames above this fraction of all frames earn a warning (the ALFA logs have about 1 %).
 BAD_FRAME_WARN_FRACTION = 0.05
 GPS_FIX_TYPE_3D = 3  #: MAVLink GPS_FIX_TYPE_3D_FIX; DataFlash GPS.Status and ULog fix_type use the same numbers
@@ -325,17 +345,24 @@ def _assemble(path: Path, fmt: str, raw: _Raw) -> FlightLog:
 # MAVLink telemetry log
 
 _TLOG_TIME_HEADER_BYTES = 8
-_TlogRecord = tuple[str, tuple[int, int], int, int | None, tuple[float, ...]]
+# (type, (src system, src component), receive us, stamp (clock, us) or None, values, index in the log)
+_TlogRecord = tuple[str, tuple[int, int], int, tuple[str, int] | None, tuple[float, ...], int]
+# a stamped message of any type: (index in the log, source, receive us, (clock, us))
+_TlogAnchor = tuple[int, tuple[int, int], int, tuple[str, int]]
+_BOOT, _UNIX = "boot", "unix"
 _TLOG_IMU_PREFERENCE = ("HIGHRES_IMU", "SCALED_IMU", "RAW_IMU", "SCALED_IMU2", "SCALED_IMU3")
 _TLOG_TYPES = {*_TLOG_IMU_PREFERENCE, "ATTITUDE", "VFR_HUD", "GPS_RAW_INT", "WIND", "SCALED_PRESSURE"}
 
 
-def _boot_us(msg: Any) -> int | None:
+def _stamp(msg: Any) -> tuple[str, int] | None:
+    """The message's own timestamp: ``("boot", us)``, ``("unix", us)`` or None."""
     if hasattr(msg, "time_boot_ms"):
-        return int(msg.time_boot_ms) * 1000
+        return _BOOT, int(msg.time_boot_ms) * 1000
     if hasattr(msg, "time_usec"):
         t = int(msg.time_usec)
-        return t if 0 < t < UNIX_TIME_MIN_US else None
+        if t <= 0:
+            return None
+        return (_BOOT, t) if t < UNIX_TIME_MIN_US else (_UNIX, t)
     return None
 
 
@@ -368,8 +395,8 @@ def read_tlog(path: Path) -> FlightLog:
 
     raw = _Raw()
     size = path.stat().st_size
-    # (type, (src system, src component), receive us, boot us or None, values)
     recs: list[_TlogRecord] = []
+    anchors: list[_TlogAnchor] = []
     vehicle: tuple[int, int, int] | None = None  # (sysid, compid, autopilot)
     last_end = skipped = 0
     try:
@@ -399,6 +426,14 @@ def read_tlog(path: Path) -> FlightLog:
                 if vehicle is None and msg.type != _MAV_TYPE_GCS and msg.autopilot != _MAV_AUTOPILOT_INVALID:
                     vehicle = (msg.get_srcSystem(), msg.get_srcComponent(), msg.autopilot)
                 continue
+            src = (msg.get_srcSystem(), msg.get_srcComponent())
+            recv_us = int(round(msg._timestamp * 1e6))
+            try:
+                stamp = _stamp(msg)
+            except (TypeError, ValueError):
+                stamp = None
+            if stamp is not None:
+                anchors.append((raw.frames, src, recv_us, stamp))
             if mtype not in _TLOG_TYPES:
                 continue
             try:
@@ -407,8 +442,7 @@ def read_tlog(path: Path) -> FlightLog:
                 raw.warnings.append(f"{mtype} message not decodable: {e}")
                 continue
             if values is not None:
-                src = (msg.get_srcSystem(), msg.get_srcComponent())
-                recs.append((mtype, src, int(round(msg._timestamp * 1e6)), _boot_us(msg), values))
+                recs.append((mtype, src, recv_us, stamp, values, raw.frames))
     finally:
         conn.close()
     if size - last_end > 0 and raw.frames:
@@ -424,6 +458,7 @@ def read_tlog(path: Path) -> FlightLog:
             raw.warnings.append("no vehicle HEARTBEAT: messages of every system are used")
     else:
         recs = [r for r in recs if r[1] == vehicle[:2]]
+        anchors = [a for a in anchors if a[1] == vehicle[:2]]
     present = {r[0] for r in recs}
     imu_type = None
     for cand in _TLOG_IMU_PREFERENCE:
@@ -433,14 +468,14 @@ def read_tlog(path: Path) -> FlightLog:
                 continue
             imu_type = cand
             break
-    _tlog_clock(recs, raw)
+    placed = _tlog_clock(recs, anchors, raw)
     targets: dict[str, tuple[list[tuple[int, tuple[float, ...]]], str]] = {
         "ATTITUDE": (raw.att, "AttitudeSample"), "VFR_HUD": (raw.air, "AirspeedSample"),
         "SCALED_PRESSURE": (raw.baro, "BaroSample"), "GPS_RAW_INT": (raw.gnss, "GnssSample"),
         "WIND": (raw.wind, "AutopilotWind")}
     if imu_type is not None:
         targets[imu_type] = (raw.imu, "ImuSample")
-    for mtype, _, t, _, values in recs:
+    for mtype, t, values in placed:
         if mtype in targets:
             targets[mtype][0].append((t, values))
     for mtype, (_, name) in targets.items():
@@ -449,41 +484,98 @@ def read_tlog(path: Path) -> FlightLog:
     return _assemble(path, "tlog", raw)
 
 
-def _tlog_clock(recs: list[_TlogRecord], raw: _Raw) -> None:
-    """Replace each record's receive time by its time on the autopilot boot clock, in place (see module doc)."""
-    stamped = np.array([r[2] - r[3] for r in recs if r[3] is not None], dtype=np.int64)
-    if len(stamped) == 0:
+class _ClockFit:
+    """``receive - stamp`` of one clock as a line in receive time, fitted to its lower envelope (module docstring)."""
+
+    def __init__(self, recv_us: NDArray[np.int64], stamp_us: NDArray[np.int64]) -> None:
+        off = (recv_us - stamp_us).astype(np.float64)
+        x = (recv_us - recv_us.min()).astype(np.float64)
+        win = np.floor(x / (CLOCK_WINDOW_S * 1e6)).astype(np.int64)
+        xs, ys = [], []
+        for w in np.unique(win):
+            sel = np.flatnonzero(win == w)
+            i = sel[np.argmin(off[sel])]
+            xs.append(x[i])
+            ys.append(off[i])
+        self.x0 = int(recv_us.min())
+        self.slope = 0.0
+        self.intercept = float(min(ys))
+        if len(xs) >= 3:
+            slope, intercept, _, _ = theilslopes(ys, xs)
+            self.slope, self.intercept = float(slope), float(intercept)
+
+    def offset_us(self, recv_us: int) -> float:
+        """The fitted ``receive - stamp`` at a receive time (the least transport delay plus the clocks' offset)."""
+        return self.intercept + self.slope * (recv_us - self.x0)
+
+
+def _tlog_clock(recs: list[_TlogRecord], anchors: list[_TlogAnchor],
+                raw: _Raw) -> list[tuple[str, int, tuple[float, ...]]]:
+    """Each record's time on the autopilot's boot clock (module docstring): ``(type, t_us, values)``."""
+    fits: dict[str, _ClockFit] = {}
+    for clock in (_BOOT, _UNIX):
+        pts = [(a[2], a[3][1]) for a in anchors if a[3][0] == clock]
+        if pts:
+            arr = np.array(pts, dtype=np.int64)
+            fits[clock] = _ClockFit(arr[:, 0], arr[:, 1])
+    ref = _BOOT if _BOOT in fits else (_UNIX if _UNIX in fits else None)
+    if ref is None:
         if recs:
             raw.warnings.append("no autopilot timestamps in the log: the tlog receive times are the clock")
         raw.t0_boot_known = False
-        offset = 0
-    else:
-        offset = int(np.median(stamped))
-    def trusted(recv: int, boot: int | None) -> bool:
-        return boot is not None and abs(recv - boot - offset) <= MAX_CLOCK_RESIDUAL_US
+        return [(r[0], r[2], r[4]) for r in recs]
+    if ref != _BOOT:
+        raw.t0_boot_known = False
+    ref_fit = fits[ref]
 
-    good = [r[3] for r in recs if r[3] is not None and trusted(r[2], r[3])]
-    lo = min(good, default=None)
-    hi = max(good, default=None)
+    def on_ref(recv_us: int, stamp: tuple[str, int] | None) -> int | None:
+        """The stamp on the reference clock, or None when there is none or it is not trusted."""
+        if stamp is None:
+            return None
+        fit = fits[stamp[0]]
+        resid = recv_us - stamp[1] - fit.offset_us(recv_us)
+        if not -CLOCK_EARLY_TOL_US <= resid <= MAX_TRANSPORT_DELAY_US:
+            return None
+        if stamp[0] == ref:
+            return stamp[1]
+        return int(round(stamp[1] + fit.offset_us(recv_us) - ref_fit.offset_us(recv_us)))
+
+    # the newest trusted stamped message of the same source before each record, in the order of the log
+    newest: dict[tuple[int, int], tuple[int, int]] = {}     # source -> (receive us, time on the reference clock)
+    before: list[tuple[int, int] | None] = []
+    ai = 0
+    for r in recs:                                          # recs and anchors are both in the log's order
+        while ai < len(anchors) and anchors[ai][0] < r[5]:
+            _, src, a_recv, a_stamp = anchors[ai]
+            a_t = on_ref(a_recv, a_stamp)
+            if a_t is not None:
+                newest[src] = (a_recv, a_t)
+            ai += 1
+        before.append(newest.get(r[1]))
+    times = [on_ref(r[2], r[3]) for r in recs]
+    good = [t for t in times if t is not None]
+    lo, hi = min(good, default=None), max(good, default=None)
     untrusted = dropped = 0
     out = []
-    for mtype, src, recv, boot, values in recs:
-        if boot is not None and trusted(recv, boot):
-            t = boot
-        else:
-            untrusted += boot is not None
-            t = recv - offset
+    for r, t, prev in zip(recs, times, before, strict=True):
+        mtype, _, recv, stamp, values, _ = r
+        if t is None:
+            untrusted += stamp is not None
+            if prev is not None and 0 <= recv - prev[0] <= MAX_TRANSPORT_DELAY_US:
+                t = prev[1]
+            else:
+                t = int(round(recv - ref_fit.offset_us(recv)))
             if lo is not None and hi is not None and not (
-                    lo - MAX_CLOCK_RESIDUAL_US <= t <= hi + MAX_CLOCK_RESIDUAL_US):
+                    lo - MAX_TRANSPORT_DELAY_US <= t <= hi + MAX_TRANSPORT_DELAY_US):
                 dropped += 1
                 continue
-        out.append((mtype, src, t, boot, values))
+        out.append((mtype, t, values))
     if untrusted:
         raw.warnings.append(f"{untrusted} messages whose autopilot timestamp disagrees with the receive time "
-                            f"(reboot or corruption) were placed by their receive time")
+                            f"(reboot or corruption) were placed by the messages sent before them")
     if dropped:
-        raw.warnings.append(f"{dropped} messages with a receive time outside the log's span were dropped")
-    recs[:] = out
+        raw.warnings.append(f"{dropped} messages with a time outside the log's span were dropped")
+    return out
 
 
 # --------------------------------------------------------------------------------------------------------------
