@@ -6,18 +6,17 @@ Degrees appear here (``*_deg``) because configuration is an edge; code reads the
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Annotated, Literal
 
-from common.config import in_range, require
+from common.config import In, Validated, in_range, require
 
 # --------------------------------------------------------------------------------------------------------------
 # Optical estimator configuration
 
 
 @dataclass(frozen=True)
-class CameraConfig:
+class CameraConfig(Validated):
     """A calibrated camera (the *camera file*, see ``config/camera/*.toml``).
 
     ``model`` is ``"fisheye"`` (OpenCV ``cv2.fisheye``, Kannala-Brandt, ``dist = [k1, k2, k3, k4]``) or
@@ -28,38 +27,29 @@ class CameraConfig:
     """
 
     model: Literal["fisheye", "pinhole"]
-    width_px: int
-    height_px: int
-    fx_px: float
-    fy_px: float
+    width_px: Annotated[int, In(16, 16384)]
+    height_px: Annotated[int, In(16, 16384)]
+    fx_px: Annotated[float, In(1.0, 1e5)]
+    fy_px: Annotated[float, In(1.0, 1e5)]
     cx_px: float
     cy_px: float
-    dist: tuple[float, ...]
-    hfov_deg: float
-    vfov_deg: float
-    mount_rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    dist: Annotated[tuple[float, ...], In(-10.0, 10.0)]
+    hfov_deg: Annotated[float, In(1.0, 360.0)]
+    vfov_deg: Annotated[float, In(1.0, 360.0)]
+    mount_rpy_deg: Annotated[tuple[float, float, float], In(-180.0, 180.0)] = (0.0, 0.0, 0.0)
     rms_px: float | None = None
 
     def __post_init__(self) -> None:
-        in_range(self.width_px, 16, 16384, "width_px")
-        in_range(self.height_px, 16, 16384, "height_px")
-        in_range(self.fx_px, 1.0, 1e5, "fx_px")
-        in_range(self.fy_px, 1.0, 1e5, "fy_px")
+        super().__post_init__()
         in_range(self.cx_px, 0.0, self.width_px, "cx_px")
         in_range(self.cy_px, 0.0, self.height_px, "cy_px")
-        in_range(self.hfov_deg, 1.0, 360.0, "hfov_deg")
-        in_range(self.vfov_deg, 1.0, 360.0, "vfov_deg")
         need = 4 if self.model == "fisheye" else 5
         require(len(self.dist) == need, "dist", f"{self.model} model needs {need} coefficients, got {len(self.dist)}")
-        for i, d in enumerate(self.dist):
-            require(math.isfinite(d) and abs(d) < 10.0, f"dist[{i}]", f"must be finite and |d| < 10, got {d!r}")
-        for i, a in enumerate(self.mount_rpy_deg):
-            in_range(a, -180.0, 180.0, f"mount_rpy_deg[{i}]")
         in_range(self.mount_rpy_deg[1], -90.0, 90.0, "mount_rpy_deg[1]")
 
 
 @dataclass(frozen=True)
-class StabConfig:
+class StabConfig(Validated):
     """Virtual nadir camera: base image and template geometry in the stabilised frame ``s``.
 
     ``base_cross_px`` x ``base_along_px`` is the base image (the paper: 121 across x 73 along).  ``template_start``
@@ -78,37 +68,27 @@ class StabConfig:
     migration.
     """
 
-    base_cross_px: int = 121
-    base_along_px: int = 73
-    template_px: int = 19
+    base_cross_px: Annotated[int, In(9, 2001, odd=True)] = 121
+    base_along_px: Annotated[int, In(9, 2001, odd=True)] = 73
+    template_px: Annotated[int, In(3, 201, odd=True)] = 19
     template_start: Literal["centre", "trailing"] = "centre"
-    focal_px: float = 0.0
-    map_grid_px: int = 8
-    roll_limit_deg: float = 45.0
-    pitch_limit_deg: float = 20.0
+    focal_px: Annotated[float, In(0.0, 1e5)] = 0.0
+    map_grid_px: Annotated[int, In(1, 256)] = 8
+    roll_limit_deg: Annotated[float, In(0.0, 89.0)] = 45.0
+    pitch_limit_deg: Annotated[float, In(0.0, 89.0)] = 20.0
     use_gyro: bool = True
-    gyro_bias_tau_s: float = 20.0
+    gyro_bias_tau_s: Annotated[float, In(0.0, 3600.0)] = 20.0
     scale_template_to_base: bool = True
     roi_centre: Literal["nadir", "view"] = "nadir"
 
     def __post_init__(self) -> None:
-        in_range(self.base_cross_px, 9, 2001, "base_cross_px")
-        in_range(self.base_along_px, 9, 2001, "base_along_px")
-        in_range(self.template_px, 3, 201, "template_px")
-        require(self.template_px % 2 == 1, "template_px", f"must be odd, got {self.template_px}")
-        require(self.base_cross_px % 2 == 1, "base_cross_px", f"must be odd, got {self.base_cross_px}")
-        require(self.base_along_px % 2 == 1, "base_along_px", f"must be odd, got {self.base_along_px}")
+        super().__post_init__()
         require(self.template_px + 4 <= min(self.base_cross_px, self.base_along_px), "template_px",
                 "must be at least 4 px smaller than both base image sides")
-        in_range(self.focal_px, 0.0, 1e5, "focal_px")
-        in_range(self.map_grid_px, 1, 256, "map_grid_px")
-        in_range(self.roll_limit_deg, 0.0, 89.0, "roll_limit_deg")
-        in_range(self.pitch_limit_deg, 0.0, 89.0, "pitch_limit_deg")
-        in_range(self.gyro_bias_tau_s, 0.0, 3600.0, "gyro_bias_tau_s")
 
 
 @dataclass(frozen=True)
-class MatchConfig:
+class MatchConfig(Validated):
     """Template matching (paper 2.4) and its quality gates.
 
     ``psr_min``: peak-to-sidelobe ratio of the SSD surface below which a match is invalid; ``texture_std_min``:
@@ -118,18 +98,13 @@ class MatchConfig:
 
     method: Literal["exhaustive", "three_step", "diamond"] = "exhaustive"
     subpixel: bool = True
-    psr_min: float = 3.0
-    texture_std_min: float = 4.0
-    sidelobe_exclude_px: int = 2
-
-    def __post_init__(self) -> None:
-        in_range(self.psr_min, 0.0, 1e3, "psr_min")
-        in_range(self.texture_std_min, 0.0, 255.0, "texture_std_min")
-        in_range(self.sidelobe_exclude_px, 0, 50, "sidelobe_exclude_px")
+    psr_min: Annotated[float, In(0.0, 1e3)] = 3.0
+    texture_std_min: Annotated[float, In(0.0, 255.0)] = 4.0
+    sidelobe_exclude_px: Annotated[int, In(0, 50)] = 2
 
 
 @dataclass(frozen=True)
-class CycleConfig:
+class CycleConfig(Validated):
     """TM cycle (paper 2.4-2.5): sample rate and the conditions that start a new cycle.
 
     A new cycle starts when the template comes within ``edge_margin_px`` of the base image edge (the critical
@@ -152,46 +127,32 @@ class CycleConfig:
     low-rate sequence with dropped frames).  The gates then compare the step with that prediction.
     """
 
-    rate_hz: float = 30.0
-    edge_margin_px: int = 1
-    max_cycle_s: float = 3.0
+    rate_hz: Annotated[float, In(1.0, 240.0)] = 30.0
+    edge_margin_px: Annotated[int, In(0, 50)] = 1
+    max_cycle_s: Annotated[float, In(0.05, 60.0)] = 3.0
     data_filter: bool = True
-    data_filter_zeta_px: float = 4.0
-    step_gate_px: float = 2.0
-    featureless_retry_s: float = 0.1
+    data_filter_zeta_px: Annotated[float, In(0.0, 100.0)] = 4.0
+    step_gate_px: Annotated[float, In(0.0, 100.0)] = 2.0
+    featureless_retry_s: Annotated[float, In(0.0, 10.0)] = 0.1
     step_prediction: Literal["per_frame", "per_second"] = "per_frame"
-
-    def __post_init__(self) -> None:
-        in_range(self.rate_hz, 1.0, 240.0, "rate_hz")
-        in_range(self.edge_margin_px, 0, 50, "edge_margin_px")
-        in_range(self.max_cycle_s, 0.05, 60.0, "max_cycle_s")
-        in_range(self.data_filter_zeta_px, 0.0, 100.0, "data_filter_zeta_px")
-        in_range(self.step_gate_px, 0.0, 100.0, "step_gate_px")
-        in_range(self.featureless_retry_s, 0.0, 10.0, "featureless_retry_s")
 
 
 @dataclass(frozen=True)
-class IntegrityConfig:
+class IntegrityConfig(Validated):
     """The paper's heuristic data-integrity filter (2.7), kept as the baseline the EKF replaces.
 
     A cycle's drift is released when it agrees within ``max_jump_deg`` with the median of the last
     ``history_cycles`` released cycles and the cycle had at least ``min_steps`` valid matches.
     """
 
-    history_cycles: int = 5
-    max_jump_deg: float = 5.0
-    min_steps: int = 3
-    min_travel_px: float = 4.0
-
-    def __post_init__(self) -> None:
-        in_range(self.history_cycles, 1, 100, "history_cycles")
-        in_range(self.max_jump_deg, 0.0, 180.0, "max_jump_deg")
-        in_range(self.min_steps, 1, 1000, "min_steps")
-        in_range(self.min_travel_px, 0.0, 1000.0, "min_travel_px")
+    history_cycles: Annotated[int, In(1, 100)] = 5
+    max_jump_deg: Annotated[float, In(0.0, 180.0)] = 5.0
+    min_steps: Annotated[int, In(1, 1000)] = 3
+    min_travel_px: Annotated[float, In(0.0, 1000.0)] = 4.0
 
 
 @dataclass(frozen=True)
-class GsoeConfig:
+class GsoeConfig(Validated):
     """Everything the optical estimator needs (``config/default.toml`` sections ``[stab]``, ``[match]``, ...)."""
 
     camera: CameraConfig

@@ -36,12 +36,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Annotated
 
 import numpy as np
 from numpy.typing import NDArray
 
 from common.angles import angle_diff, wrap_2pi
-from common.config import in_range
+from common.config import In, Validated
 from gsoe.camera import CameraModel
 from gsoe.camera import forward_camera as forward_camera  # re-exported: the tracking camera
 from gsoe.rotation import R_nb_from_euler
@@ -53,7 +54,7 @@ HEADING_TYPE_HEADING = 1
 
 
 @dataclass(frozen=True)
-class GuidanceConfig:
+class GuidanceConfig(Validated):
     """``[companion.guidance]``: geometry gates and saturations of the heading command.
 
     ``min_depression_deg``: the target ray must point at least this far below the horizon (else invalid);
@@ -67,27 +68,16 @@ class GuidanceConfig:
     ``rate_hz``: command rate; ``correct_drift``: apply the drift (off only to measure the uncorrected baseline).
     """
 
-    min_depression_deg: float = 1.0
-    max_range_m: float = 5000.0
-    freeze_range_m: float = 10.0
-    hold_range_m: float = 150.0
-    max_drift_deg: float = 35.0
-    max_drift_sigma_deg: float = 5.0
-    max_heading_change_deg: float = 120.0
-    accel_limit_m_s2: float = 5.0
-    rate_hz: float = 5.0
+    min_depression_deg: Annotated[float, In(0.0, 89.0)] = 1.0
+    max_range_m: Annotated[float, In(1.0, 1e5)] = 5000.0
+    freeze_range_m: Annotated[float, In(0.0, 1e4)] = 10.0
+    hold_range_m: Annotated[float, In(0.0, 1e5)] = 150.0
+    max_drift_deg: Annotated[float, In(0.0, 89.0)] = 35.0
+    max_drift_sigma_deg: Annotated[float, In(0.0, 90.0)] = 5.0
+    max_heading_change_deg: Annotated[float, In(1.0, 180.0)] = 120.0
+    accel_limit_m_s2: Annotated[float, In(0.05, 100.0)] = 5.0
+    rate_hz: Annotated[float, In(0.1, 100.0)] = 5.0
     correct_drift: bool = True
-
-    def __post_init__(self) -> None:
-        in_range(self.min_depression_deg, 0.0, 89.0, "min_depression_deg")
-        in_range(self.max_range_m, 1.0, 1e5, "max_range_m")
-        in_range(self.freeze_range_m, 0.0, 1e4, "freeze_range_m")
-        in_range(self.hold_range_m, 0.0, 1e5, "hold_range_m")
-        in_range(self.max_drift_deg, 0.0, 89.0, "max_drift_deg")
-        in_range(self.max_drift_sigma_deg, 0.0, 90.0, "max_drift_sigma_deg")
-        in_range(self.max_heading_change_deg, 1.0, 180.0, "max_heading_change_deg")
-        in_range(self.accel_limit_m_s2, 0.05, 100.0, "accel_limit_m_s2")
-        in_range(self.rate_hz, 0.1, 100.0, "rate_hz")
 
 
 @dataclass(frozen=True, slots=True)

@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Annotated, Protocol
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from common.config import in_range, require
+from common.config import In, Validated, in_range
 
 
 @dataclass(frozen=True, slots=True)
@@ -49,7 +49,7 @@ class Tracker(Protocol):
 
 
 @dataclass(frozen=True)
-class TemplateTrackerConfig:
+class TemplateTrackerConfig(Validated):
     """``[companion.tracker]``: template tracker parameters.
 
     ``template_px`` (odd) square template around the target; ``search_px``: half-size of the search window around
@@ -59,21 +59,12 @@ class TemplateTrackerConfig:
     needs; ``max_lost_frames``: after this many lost frames in a row the target is dropped.
     """
 
-    template_px: int = 31
-    search_px: int = 48
-    min_score: float = 0.7
-    update_score: float = 0.85
-    min_texture_std: float = 4.0
-    max_lost_frames: int = 30
-
-    def __post_init__(self) -> None:
-        in_range(self.template_px, 5, 255, "template_px")
-        require(self.template_px % 2 == 1, "template_px", f"must be odd, got {self.template_px}")
-        in_range(self.search_px, 1, 1024, "search_px")
-        in_range(self.min_score, -1.0, 1.0, "min_score")
-        in_range(self.update_score, -1.0, 1.0, "update_score")
-        in_range(self.min_texture_std, 0.0, 255.0, "min_texture_std")
-        in_range(self.max_lost_frames, 1, 100000, "max_lost_frames")
+    template_px: Annotated[int, In(5, 255, odd=True)] = 31
+    search_px: Annotated[int, In(1, 1024)] = 48
+    min_score: Annotated[float, In(-1.0, 1.0)] = 0.7
+    update_score: Annotated[float, In(-1.0, 1.0)] = 0.85
+    min_texture_std: Annotated[float, In(0.0, 255.0)] = 4.0
+    max_lost_frames: Annotated[int, In(1, 100000)] = 30
 
 
 def _gray(frame: NDArray[np.uint8]) -> NDArray[np.uint8] | None:

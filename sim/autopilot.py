@@ -47,12 +47,12 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Final, Literal
+from typing import Annotated, Final, Literal
 
 import numpy as np
 
 from common.angles import wrap_pi
-from common.config import in_range, require
+from common.config import In, Validated, require
 from sim.dynamics import STANDARD_G_M_S2, ControlCommand
 from sim.truth import TruthState
 
@@ -62,97 +62,75 @@ SCHEDULE_TOLERANCE_S: Final = 1e-9
 summed from steps)."""
 
 Mode = Literal["idle", "mission", "heading", "roll"]
+Gain = Annotated[float, In(0.0, 100.0)]
+"""A loop gain or feed-forward (normalised command per rad, rad/s, m or m/s)."""
+_HEIGHT_M = In(1.0, 10000.0)
+_AIRSPEED_M_S = In(5.0, 60.0)
+_RateHz = Annotated[float, In(1.0, 10000.0)]
 
 
 @dataclass(frozen=True)
-class Waypoint:
+class Waypoint(Validated):
     """A mission waypoint: NED position of the point (height above the ground) and the airspeed to fly to it."""
 
-    north_m: float
-    east_m: float
-    height_m: float
-    airspeed_m_s: float
-
-    def __post_init__(self) -> None:
-        in_range(self.north_m, -1e6, 1e6, "north_m")
-        in_range(self.east_m, -1e6, 1e6, "east_m")
-        in_range(self.height_m, 1.0, 10000.0, "height_m")
-        in_range(self.airspeed_m_s, 5.0, 60.0, "airspeed_m_s")
+    north_m: Annotated[float, In(-1e6, 1e6)]
+    east_m: Annotated[float, In(-1e6, 1e6)]
+    height_m: Annotated[float, _HEIGHT_M]
+    airspeed_m_s: Annotated[float, _AIRSPEED_M_S]
 
 
 @dataclass(frozen=True)
-class AutopilotGains:
+class AutopilotGains(Validated):
     """Gains and limits (SI units, radians; surface gains in normalised command per rad or rad/s)."""
 
-    roll_limit_rad: float = math.radians(45.0)
-    pitch_limit_rad: float = math.radians(20.0)
-    roll_rate_limit_rad_s: float = math.radians(90.0)
-    pitch_rate_limit_rad_s: float = math.radians(60.0)
+    roll_limit_rad: Annotated[float, In(math.radians(5.0), math.radians(75.0))] = math.radians(45.0)
+    pitch_limit_rad: Annotated[float, In(math.radians(2.0), math.radians(45.0))] = math.radians(20.0)
+    roll_rate_limit_rad_s: Annotated[float, In(0.05, 10.0)] = math.radians(90.0)
+    pitch_rate_limit_rad_s: Annotated[float, In(0.05, 10.0)] = math.radians(60.0)
     # roll: attitude -> rate -> aileron
-    roll_kp: float = 3.5
-    roll_rate_kp: float = 0.15
-    roll_rate_ki: float = 0.15
-    roll_rate_ff: float = 0.42
+    roll_kp: Gain = 3.5
+    roll_rate_kp: Gain = 0.15
+    roll_rate_ki: Gain = 0.15
+    roll_rate_ff: Gain = 0.42
     # pitch: attitude -> rate -> elevator
-    pitch_kp: float = 3.0
-    pitch_rate_kp: float = 0.25
-    pitch_rate_ki: float = 0.5
-    pitch_rate_ff: float = 0.1
+    pitch_kp: Gain = 3.0
+    pitch_rate_kp: Gain = 0.25
+    pitch_rate_ki: Gain = 0.5
+    pitch_rate_ff: Gain = 0.1
     # yaw: sideslip PI and yaw damper
-    beta_kp: float = 1.5
-    beta_ki: float = 1.0
-    yaw_damper_kp: float = 0.15
+    beta_kp: Gain = 1.5
+    beta_ki: Gain = 1.0
+    yaw_damper_kp: Gain = 0.15
     # surface gains are for this airspeed and scale with its square over the actual one's
-    airspeed_ref_m_s: float = 20.0
-    gain_scale_min: float = 0.3
-    gain_scale_max: float = 3.0
+    airspeed_ref_m_s: Annotated[float, _AIRSPEED_M_S] = 20.0
+    gain_scale_min: Annotated[float, In(0.01, 1.0)] = 0.3
+    gain_scale_max: Annotated[float, In(1.0, 100.0)] = 3.0
     # height -> climb rate -> pitch
-    height_kp: float = 0.3
-    climb_rate_max_m_s: float = 3.0
-    sink_rate_max_m_s: float = 2.5
-    climb_kp: float = 0.06
-    climb_ki: float = 0.03
-    pitch_turn_ff_rad: float = 0.06
+    height_kp: Gain = 0.3
+    climb_rate_max_m_s: Annotated[float, In(0.1, 20.0)] = 3.0
+    sink_rate_max_m_s: Annotated[float, In(0.1, 20.0)] = 2.5
+    climb_kp: Gain = 0.06
+    climb_ki: Gain = 0.03
+    pitch_turn_ff_rad: Gain = 0.06
     # airspeed -> throttle
-    airspeed_kp: float = 0.12
-    airspeed_ki: float = 0.05
-    throttle_climb_ff: float = 0.08
-    throttle_min: float = 0.0
-    throttle_max: float = 1.0
+    airspeed_kp: Gain = 0.12
+    airspeed_ki: Gain = 0.05
+    throttle_climb_ff: Gain = 0.08
+    throttle_min: Annotated[float, In(0.0, 1.0)] = 0.0
+    throttle_max: Annotated[float, In(0.0, 1.0)] = 1.0
     # lateral guidance
-    l1_period_s: float = 11.0
-    l1_damping: float = 0.75
-    heading_kp: float = 1.0
-    waypoint_radius_m: float = 15.0
-    integrator_limit: float = 0.5
+    l1_period_s: Annotated[float, In(1.0, 100.0)] = 11.0
+    l1_damping: Annotated[float, In(0.1, 2.0)] = 0.75
+    heading_kp: Gain = 1.0
+    waypoint_radius_m: Annotated[float, In(0.0, 10000.0)] = 15.0
+    integrator_limit: Annotated[float, In(0.0, 1.0)] = 0.5
     # loop rates (see the module docstring): outer loops (guidance, energy) and inner loops (attitude, rates)
-    guidance_rate_hz: float = 50.0
-    attitude_rate_hz: float = 50.0
+    guidance_rate_hz: _RateHz = 50.0
+    attitude_rate_hz: _RateHz = 50.0
 
     def __post_init__(self) -> None:
-        in_range(self.roll_limit_rad, math.radians(5.0), math.radians(75.0), "roll_limit_rad")
-        in_range(self.pitch_limit_rad, math.radians(2.0), math.radians(45.0), "pitch_limit_rad")
-        in_range(self.roll_rate_limit_rad_s, 0.05, 10.0, "roll_rate_limit_rad_s")
-        in_range(self.pitch_rate_limit_rad_s, 0.05, 10.0, "pitch_rate_limit_rad_s")
-        for name in ("roll_kp", "roll_rate_kp", "roll_rate_ki", "roll_rate_ff", "pitch_kp", "pitch_rate_kp",
-                     "pitch_rate_ki", "pitch_rate_ff", "beta_kp", "beta_ki", "yaw_damper_kp", "height_kp",
-                     "climb_kp", "climb_ki", "pitch_turn_ff_rad", "airspeed_kp", "airspeed_ki", "throttle_climb_ff",
-                     "heading_kp"):
-            in_range(getattr(self, name), 0.0, 100.0, name)
-        in_range(self.airspeed_ref_m_s, 5.0, 60.0, "airspeed_ref_m_s")
-        in_range(self.gain_scale_min, 0.01, 1.0, "gain_scale_min")
-        in_range(self.gain_scale_max, 1.0, 100.0, "gain_scale_max")
-        in_range(self.climb_rate_max_m_s, 0.1, 20.0, "climb_rate_max_m_s")
-        in_range(self.sink_rate_max_m_s, 0.1, 20.0, "sink_rate_max_m_s")
-        in_range(self.throttle_min, 0.0, 1.0, "throttle_min")
-        in_range(self.throttle_max, 0.0, 1.0, "throttle_max")
+        super().__post_init__()
         require(self.throttle_min < self.throttle_max, "throttle_max", "must be above throttle_min")
-        in_range(self.l1_period_s, 1.0, 100.0, "l1_period_s")
-        in_range(self.l1_damping, 0.1, 2.0, "l1_damping")
-        in_range(self.waypoint_radius_m, 0.0, 10000.0, "waypoint_radius_m")
-        in_range(self.integrator_limit, 0.0, 1.0, "integrator_limit")
-        in_range(self.guidance_rate_hz, 1.0, 10000.0, "guidance_rate_hz")
-        in_range(self.attitude_rate_hz, 1.0, 10000.0, "attitude_rate_hz")
         require(self.guidance_rate_hz <= self.attitude_rate_hz, "guidance_rate_hz",
                 f"the outer loops must not run faster than the inner ones (attitude_rate_hz = {self.attitude_rate_hz})")
 
@@ -296,10 +274,10 @@ class Autopilot:
 
     def _set_targets(self, height_m: float | None, airspeed_m_s: float | None) -> None:
         if height_m is not None:
-            in_range(height_m, 1.0, 10000.0, "height_m")
+            _HEIGHT_M.check(height_m, "height_m")
             self._height_cmd = float(height_m)
         if airspeed_m_s is not None:
-            in_range(airspeed_m_s, 5.0, 60.0, "airspeed_m_s")
+            _AIRSPEED_M_S.check(airspeed_m_s, "airspeed_m_s")
             self._airspeed_cmd = float(airspeed_m_s)
 
     # ------------------------------------------------------------------------------------------------------------

@@ -45,13 +45,13 @@ import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Final
+from typing import Annotated, Final
 
 import numpy as np
 from scipy.optimize import root
 
 from common.angles import wrap_pi
-from common.config import in_range, require
+from common.config import In, Validated, require
 from sim.truth import TruthState
 from sim.wind import WindField, WindParams
 
@@ -82,7 +82,7 @@ class DynamicsError(RuntimeError):
 
 
 @dataclass(frozen=True)
-class DynamicsParams:
+class DynamicsParams(Validated):
     """How the dynamics run (SI units, radians).
 
     ``dt_s`` is the step (default 1/240 s, so 240 Hz IMU samples exist).  ``ref_lat_rad``/``ref_lon_rad`` locate
@@ -93,25 +93,19 @@ class DynamicsParams:
     hit the ground.  ``max_specific_force_m_s2``: a specific force above it is taken as a numerical blow-up.
     """
 
-    dt_s: float = 1.0 / 240.0
-    ref_lat_rad: float = math.radians(50.0)
-    ref_lon_rad: float = math.radians(20.0)
+    dt_s: Annotated[float, In(1e-4, 0.05)] = 1.0 / 240.0
+    ref_lat_rad: Annotated[float, In(-math.radians(85.0), math.radians(85.0))] = math.radians(50.0)
+    ref_lon_rad: Annotated[float, In(-math.pi, math.pi)] = math.radians(20.0)
     aircraft: str = "talon"
-    trim_settle_steps: int = 240
-    trim_tolerance: float = 1e-6
-    ground_clearance_m: float = 0.3
-    max_specific_force_m_s2: float = 30.0 * STANDARD_G_M_S2
+    trim_settle_steps: Annotated[int, In(10, 100000)] = 240
+    trim_tolerance: Annotated[float, In(1e-12, 1e-1)] = 1e-6
+    ground_clearance_m: Annotated[float, In(0.0, 100.0)] = 0.3
+    max_specific_force_m_s2: Annotated[float, In(1.0, 1e4)] = 30.0 * STANDARD_G_M_S2
 
     def __post_init__(self) -> None:
-        in_range(self.dt_s, 1e-4, 0.05, "dt_s")
-        in_range(self.ref_lat_rad, -math.radians(85.0), math.radians(85.0), "ref_lat_rad")
-        in_range(self.ref_lon_rad, -math.pi, math.pi, "ref_lon_rad")
+        super().__post_init__()
         require((AIRCRAFT_ROOT / self.aircraft / f"{self.aircraft}.xml").is_file(), "aircraft",
                 f"no aircraft file {self.aircraft!r} under {AIRCRAFT_ROOT}")
-        in_range(self.trim_settle_steps, 10, 100000, "trim_settle_steps")
-        in_range(self.trim_tolerance, 1e-12, 1e-1, "trim_tolerance")
-        in_range(self.ground_clearance_m, 0.0, 100.0, "ground_clearance_m")
-        in_range(self.max_specific_force_m_s2, 1.0, 1e4, "max_specific_force_m_s2")
 
 
 @dataclass(frozen=True, slots=True)

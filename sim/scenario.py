@@ -32,12 +32,12 @@ import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, get_args
+from typing import Annotated, Any, Literal, get_args
 
 import numpy as np
 from numpy.typing import NDArray
 
-from common.config import ConfigError, build, in_range, require, to_dict
+from common.config import ConfigError, In, Validated, build, require, to_dict
 from common.configfile import CONFIG_DIR, read_toml
 from gsoe.config import CameraConfig, CycleConfig, GsoeConfig, IntegrityConfig, MatchConfig, StabConfig
 
@@ -68,13 +68,19 @@ RATE_TOLERANCE = 1e-6
 # Nesting depth of ``extends`` chains (guards against cycles as well).
 MAX_EXTENDS_DEPTH = 8
 
+# Ranges shared by several fields.
+_NorthEastM = Annotated[float, In(-MISSION_EXTENT_M, MISSION_EXTENT_M)]
+_HeightM = Annotated[float, In(HEIGHT_MIN_M, HEIGHT_MAX_M)]
+_AirspeedMS = Annotated[float, In(AIRSPEED_MIN_M_S, AIRSPEED_MAX_M_S)]
+_SensorRateHz = Annotated[float, In(1.0, 1_000.0)]
+
 
 # --------------------------------------------------------------------------------------------------------------
 # Sections
 
 
 @dataclass(frozen=True)
-class TerrainConfig:
+class TerrainConfig(Validated):
     """Ground under the aircraft: the texture the renderer drapes over flat ground at ``ground_elevation_m``.
 
     ``ground_elevation_m`` is the flat ground's height relative to the mission's reference point (positive up).
@@ -82,32 +88,18 @@ class TerrainConfig:
 
     texture: Texture = "mosaic"
     ground: Literal["flat"] = "flat"
-    ground_elevation_m: float = 0.0
-
-    def __post_init__(self) -> None:
-        in_range(self.ground_elevation_m, -1_000.0, 1_000.0, "ground_elevation_m")
-
-
-def _check_point(obj: Any) -> None:
-    in_range(obj.north_m, -MISSION_EXTENT_M, MISSION_EXTENT_M, "north_m")
-    in_range(obj.east_m, -MISSION_EXTENT_M, MISSION_EXTENT_M, "east_m")
-    in_range(obj.height_m, HEIGHT_MIN_M, HEIGHT_MAX_M, "height_m")
-    in_range(obj.airspeed_m_s, AIRSPEED_MIN_M_S, AIRSPEED_MAX_M_S, "airspeed_m_s")
+    ground_elevation_m: Annotated[float, In(-1_000.0, 1_000.0)] = 0.0
 
 
 @dataclass(frozen=True)
-class StartConfig:
+class StartConfig(Validated):
     """Initial state: position (north/east from the reference point, height above it), true airspeed, heading."""
 
-    north_m: float = 0.0
-    east_m: float = 0.0
-    height_m: float = 100.0
-    airspeed_m_s: float = 20.0
-    yaw_deg: float = 0.0
-
-    def __post_init__(self) -> None:
-        _check_point(self)
-        in_range(self.yaw_deg, -360.0, 360.0, "yaw_deg")
+    north_m: _NorthEastM = 0.0
+    east_m: _NorthEastM = 0.0
+    height_m: _HeightM = 100.0
+    airspeed_m_s: _AirspeedMS = 20.0
+    yaw_deg: Annotated[float, In(-360.0, 360.0)] = 0.0
 
     @property
     def yaw_rad(self) -> float:
@@ -115,20 +107,17 @@ class StartConfig:
 
 
 @dataclass(frozen=True)
-class WaypointConfig:
+class WaypointConfig(Validated):
     """One mission waypoint: position, height above the reference point, commanded true airspeed on the leg to it."""
 
-    north_m: float
-    east_m: float
-    height_m: float
-    airspeed_m_s: float
-
-    def __post_init__(self) -> None:
-        _check_point(self)
+    north_m: _NorthEastM
+    east_m: _NorthEastM
+    height_m: _HeightM
+    airspeed_m_s: _AirspeedMS
 
 
 @dataclass(frozen=True)
-class MissionConfig:
+class MissionConfig(Validated):
     """The flight plan: start state and the waypoints flown in order (from the last back to the first if ``loop``)."""
 
     waypoints: tuple[WaypointConfig, ...]
@@ -136,6 +125,7 @@ class MissionConfig:
     loop: bool = True
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         n = len(self.waypoints)
         require(1 <= n <= MAX_WAYPOINTS, "waypoints", f"must hold 1 to {MAX_WAYPOINTS} waypoints, got {n}")
         require(not self.loop or n >= 2, "loop", "a looping mission needs at least 2 waypoints")
@@ -161,7 +151,7 @@ class MissionConfig:
 
 
 @dataclass(frozen=True)
-class WindConfig:
+class WindConfig(Validated):
     """True wind field.
 
     Steady wind ``speed_m_s`` at ``ref_height_m`` above ground, blowing *from* ``from_deg`` (clockwise from north).
@@ -173,31 +163,23 @@ class WindConfig:
     peak and ``gust_length_m`` length, starting at exponentially distributed intervals of mean ``gust_interval_s``.
     """
 
-    speed_m_s: float = 0.0
-    ref_height_m: float = 6.0
-    from_deg: float = 0.0
+    speed_m_s: Annotated[float, In(0.0, WIND_MAX_M_S)] = 0.0
+    ref_height_m: Annotated[float, In(1.0, 100.0)] = 6.0
+    from_deg: Annotated[float, In(0.0, 360.0)] = 0.0
     shear: bool = True
-    roughness_m: float = 0.03
+    roughness_m: Annotated[float, In(1e-4, 3.0)] = 0.03
     turbulence: bool = False
     turbulence_severity: Literal["light", "moderate", "severe"] = "light"
-    turbulence_scale: float = 1.0
-    turbulence_rate_hz: float = 240.0
+    turbulence_scale: Annotated[float, In(0.0, 5.0)] = 1.0
+    turbulence_rate_hz: Annotated[float, In(TURBULENCE_RATE_MIN_HZ, 1.0 / DT_MIN_S)] = 240.0
     gusts: bool = False
-    gust_amplitude_m_s: float = 2.0
-    gust_length_m: float = 100.0
-    gust_interval_s: float = 60.0
+    gust_amplitude_m_s: Annotated[float, In(0.0, 20.0)] = 2.0
+    gust_length_m: Annotated[float, In(1.0, 2_000.0)] = 100.0
+    gust_interval_s: Annotated[float, In(1.0, 1e5)] = 60.0
 
     def __post_init__(self) -> None:
-        in_range(self.speed_m_s, 0.0, WIND_MAX_M_S, "speed_m_s")
-        in_range(self.ref_height_m, 1.0, 100.0, "ref_height_m")
-        in_range(self.from_deg, 0.0, 360.0, "from_deg")
-        in_range(self.roughness_m, 1e-4, 3.0, "roughness_m")
+        super().__post_init__()
         require(self.roughness_m < self.ref_height_m, "roughness_m", "must be below ref_height_m")
-        in_range(self.turbulence_scale, 0.0, 5.0, "turbulence_scale")
-        in_range(self.turbulence_rate_hz, TURBULENCE_RATE_MIN_HZ, 1.0 / DT_MIN_S, "turbulence_rate_hz")
-        in_range(self.gust_amplitude_m_s, 0.0, 20.0, "gust_amplitude_m_s")
-        in_range(self.gust_length_m, 1.0, 2_000.0, "gust_length_m")
-        in_range(self.gust_interval_s, 1.0, 1e5, "gust_interval_s")
 
     @property
     def from_rad(self) -> float:
@@ -211,7 +193,7 @@ class WindConfig:
 
 
 @dataclass(frozen=True)
-class ImuConfig:
+class ImuConfig(Validated):
     """IMU (gyro + accelerometer, body FRD), per axis.
 
     White noise as a density (``*_noise_density_*``, the std of a sample is density * sqrt(rate_hz)); the turn-on
@@ -219,26 +201,15 @@ class ImuConfig:
     one second); the scale-factor error of a run is drawn from N(0, ``*_scale_std``) (a fraction).
     """
 
-    rate_hz: float = 240.0
-    gyro_noise_density_deg_s_sqrt_hz: float = 0.01
-    gyro_bias_std_deg_s: float = 0.2
-    gyro_bias_walk_deg_s_sqrt_s: float = 5e-4
-    gyro_scale_std: float = 0.002
-    accel_noise_density_m_s2_sqrt_hz: float = 0.004
-    accel_bias_std_m_s2: float = 0.05
-    accel_bias_walk_m_s2_sqrt_s: float = 5e-4
-    accel_scale_std: float = 0.002
-
-    def __post_init__(self) -> None:
-        in_range(self.rate_hz, 100.0, 2_000.0, "rate_hz")
-        in_range(self.gyro_noise_density_deg_s_sqrt_hz, 0.0, 1.0, "gyro_noise_density_deg_s_sqrt_hz")
-        in_range(self.gyro_bias_std_deg_s, 0.0, 10.0, "gyro_bias_std_deg_s")
-        in_range(self.gyro_bias_walk_deg_s_sqrt_s, 0.0, 0.1, "gyro_bias_walk_deg_s_sqrt_s")
-        in_range(self.gyro_scale_std, 0.0, 0.1, "gyro_scale_std")
-        in_range(self.accel_noise_density_m_s2_sqrt_hz, 0.0, 1.0, "accel_noise_density_m_s2_sqrt_hz")
-        in_range(self.accel_bias_std_m_s2, 0.0, 2.0, "accel_bias_std_m_s2")
-        in_range(self.accel_bias_walk_m_s2_sqrt_s, 0.0, 0.1, "accel_bias_walk_m_s2_sqrt_s")
-        in_range(self.accel_scale_std, 0.0, 0.1, "accel_scale_std")
+    rate_hz: Annotated[float, In(100.0, 2_000.0)] = 240.0
+    gyro_noise_density_deg_s_sqrt_hz: Annotated[float, In(0.0, 1.0)] = 0.01
+    gyro_bias_std_deg_s: Annotated[float, In(0.0, 10.0)] = 0.2
+    gyro_bias_walk_deg_s_sqrt_s: Annotated[float, In(0.0, 0.1)] = 5e-4
+    gyro_scale_std: Annotated[float, In(0.0, 0.1)] = 0.002
+    accel_noise_density_m_s2_sqrt_hz: Annotated[float, In(0.0, 1.0)] = 0.004
+    accel_bias_std_m_s2: Annotated[float, In(0.0, 2.0)] = 0.05
+    accel_bias_walk_m_s2_sqrt_s: Annotated[float, In(0.0, 0.1)] = 5e-4
+    accel_scale_std: Annotated[float, In(0.0, 0.1)] = 0.002
 
     @property
     def gyro_noise_density_rad_s_sqrt_hz(self) -> float:
@@ -254,7 +225,7 @@ class ImuConfig:
 
 
 @dataclass(frozen=True)
-class AhrsConfig:
+class AhrsConfig(Validated):
     """AHRS attitude (roll, pitch, yaw).
 
     White noise ``noise_deg`` per angle; a constant bias per run drawn from N(0, ``bias_std_deg``) for roll and
@@ -262,18 +233,11 @@ class AhrsConfig:
     attitude is the one of ``latency_s`` before the sample's stamp.
     """
 
-    rate_hz: float = 50.0
-    noise_deg: float = 0.1
-    bias_std_deg: float = 0.3
-    yaw_bias_std_deg: float = 1.0
-    latency_s: float = 0.01
-
-    def __post_init__(self) -> None:
-        in_range(self.rate_hz, 1.0, 1_000.0, "rate_hz")
-        in_range(self.noise_deg, 0.0, 10.0, "noise_deg")
-        in_range(self.bias_std_deg, 0.0, 10.0, "bias_std_deg")
-        in_range(self.yaw_bias_std_deg, 0.0, 30.0, "yaw_bias_std_deg")
-        in_range(self.latency_s, 0.0, 1.0, "latency_s")
+    rate_hz: _SensorRateHz = 50.0
+    noise_deg: Annotated[float, In(0.0, 10.0)] = 0.1
+    bias_std_deg: Annotated[float, In(0.0, 10.0)] = 0.3
+    yaw_bias_std_deg: Annotated[float, In(0.0, 30.0)] = 1.0
+    latency_s: Annotated[float, In(0.0, 1.0)] = 0.01
 
     @property
     def noise_rad(self) -> float:
@@ -289,21 +253,16 @@ class AhrsConfig:
 
 
 @dataclass(frozen=True)
-class AirspeedConfig:
+class AirspeedConfig(Validated):
     """Pitot true airspeed: white noise ``noise_m_s``, a scale-factor error per run from N(0, ``scale_error_std``)."""
 
-    rate_hz: float = 50.0
-    noise_m_s: float = 0.3
-    scale_error_std: float = 0.02
-
-    def __post_init__(self) -> None:
-        in_range(self.rate_hz, 1.0, 1_000.0, "rate_hz")
-        in_range(self.noise_m_s, 0.0, 10.0, "noise_m_s")
-        in_range(self.scale_error_std, 0.0, 0.5, "scale_error_std")
+    rate_hz: _SensorRateHz = 50.0
+    noise_m_s: Annotated[float, In(0.0, 10.0)] = 0.3
+    scale_error_std: Annotated[float, In(0.0, 0.5)] = 0.02
 
 
 @dataclass(frozen=True)
-class BaroConfig:
+class BaroConfig(Validated):
     """Barometric height above the reference point.
 
     White noise ``noise_m``; a turn-on offset per run from N(0, ``bias_std_m``) (0: zeroed at the reference point);
@@ -311,30 +270,19 @@ class BaroConfig:
     second is ``walk_m_sqrt_s``.
     """
 
-    rate_hz: float = 25.0
-    noise_m: float = 0.5
-    bias_std_m: float = 0.0
-    drift_rate_std_m_s: float = 0.002
-    walk_m_sqrt_s: float = 0.02
-
-    def __post_init__(self) -> None:
-        in_range(self.rate_hz, 1.0, 1_000.0, "rate_hz")
-        in_range(self.noise_m, 0.0, 50.0, "noise_m")
-        in_range(self.bias_std_m, 0.0, 500.0, "bias_std_m")
-        in_range(self.drift_rate_std_m_s, 0.0, 1.0, "drift_rate_std_m_s")
-        in_range(self.walk_m_sqrt_s, 0.0, 5.0, "walk_m_sqrt_s")
+    rate_hz: _SensorRateHz = 25.0
+    noise_m: Annotated[float, In(0.0, 50.0)] = 0.5
+    bias_std_m: Annotated[float, In(0.0, 500.0)] = 0.0
+    drift_rate_std_m_s: Annotated[float, In(0.0, 1.0)] = 0.002
+    walk_m_sqrt_s: Annotated[float, In(0.0, 5.0)] = 0.02
 
 
 @dataclass(frozen=True)
-class OutageConfig:
+class OutageConfig(Validated):
     """A GNSS outage: no fix from ``start_s`` for ``length_s`` seconds (simulation time)."""
 
-    start_s: float
-    length_s: float
-
-    def __post_init__(self) -> None:
-        in_range(self.start_s, 0.0, DURATION_MAX_S, "start_s")
-        in_range(self.length_s, 0.0, DURATION_MAX_S, "length_s", lo_open=True)
+    start_s: Annotated[float, In(0.0, DURATION_MAX_S)]
+    length_s: Annotated[float, In(0.0, DURATION_MAX_S, lo_open=True)]
 
     @property
     def end_s(self) -> float:
@@ -342,7 +290,7 @@ class OutageConfig:
 
 
 @dataclass(frozen=True)
-class GnssConfig:
+class GnssConfig(Validated):
     """GNSS position and velocity (NED, relative to the reference point).
 
     Position errors are first-order Gauss-Markov per axis with stationary std ``pos_noise_m`` (north, east) and
@@ -350,21 +298,13 @@ class GnssConfig:
     ``vel_noise_m_s`` per axis.  Inside an outage window the receiver reports no fix.
     """
 
-    rate_hz: float = 5.0
-    pos_noise_m: float = 1.0
-    alt_noise_m: float = 2.0
-    pos_corr_time_s: float = 0.0
-    vel_noise_m_s: float = 0.1
-    n_sats: int = 12
+    rate_hz: Annotated[float, In(0.1, 100.0)] = 5.0
+    pos_noise_m: Annotated[float, In(0.0, 100.0)] = 1.0
+    alt_noise_m: Annotated[float, In(0.0, 100.0)] = 2.0
+    pos_corr_time_s: Annotated[float, In(0.0, 10_000.0)] = 0.0
+    vel_noise_m_s: Annotated[float, In(0.0, 10.0)] = 0.1
+    n_sats: Annotated[int, In(4, 64)] = 12
     outages: tuple[OutageConfig, ...] = ()
-
-    def __post_init__(self) -> None:
-        in_range(self.rate_hz, 0.1, 100.0, "rate_hz")
-        in_range(self.pos_noise_m, 0.0, 100.0, "pos_noise_m")
-        in_range(self.alt_noise_m, 0.0, 100.0, "alt_noise_m")
-        in_range(self.pos_corr_time_s, 0.0, 10_000.0, "pos_corr_time_s")
-        in_range(self.vel_noise_m_s, 0.0, 10.0, "vel_noise_m_s")
-        in_range(self.n_sats, 4, 64, "n_sats")
 
     def in_outage(self, t_s: float) -> bool:
         """True when ``t_s`` lies inside an outage window ``[start_s, end_s)``."""
@@ -372,7 +312,7 @@ class GnssConfig:
 
 
 @dataclass(frozen=True)
-class SensorsConfig:
+class SensorsConfig(Validated):
     imu: ImuConfig = field(default_factory=ImuConfig)
     ahrs: AhrsConfig = field(default_factory=AhrsConfig)
     airspeed: AirspeedConfig = field(default_factory=AirspeedConfig)
@@ -390,7 +330,7 @@ _GSOE_SECTIONS: dict[str, type] = {
 
 
 @dataclass(frozen=True)
-class CameraSimConfig:
+class CameraSimConfig(Validated):
     """The simulated camera.
 
     Frames are exposed at ``rate_hz`` for ``exposure_s`` (motion blur); the stamp a frame carries is its true
@@ -400,22 +340,17 @@ class CameraSimConfig:
     those of the optical estimator's configuration for this scenario (see :func:`gsoe_config_for`).
     """
 
-    rate_hz: float = 30.0
-    exposure_s: float = 0.002
-    timestamp_offset_s: float = 0.0
-    timestamp_offset_std_s: float = 0.0
-    noise_std: float = 2.0
-    gain: float = 1.0
+    rate_hz: Annotated[float, In(1.0, 120.0)] = 30.0
+    exposure_s: Annotated[float, In(0.0, 0.1)] = 0.002
+    timestamp_offset_s: Annotated[float, In(-0.5, 0.5)] = 0.0
+    timestamp_offset_std_s: Annotated[float, In(0.0, 0.5)] = 0.0
+    noise_std: Annotated[float, In(0.0, 100.0)] = 2.0
+    gain: Annotated[float, In(0.05, 20.0)] = 1.0
     gsoe_overrides: Any = field(default_factory=dict, hash=False)
 
     def __post_init__(self) -> None:
-        in_range(self.rate_hz, 1.0, 120.0, "rate_hz")
-        in_range(self.exposure_s, 0.0, 0.1, "exposure_s")
+        super().__post_init__()
         require(self.exposure_s <= 1.0 / self.rate_hz, "exposure_s", "must not exceed the frame period 1/rate_hz")
-        in_range(self.timestamp_offset_s, -0.5, 0.5, "timestamp_offset_s")
-        in_range(self.timestamp_offset_std_s, 0.0, 0.5, "timestamp_offset_std_s")
-        in_range(self.noise_std, 0.0, 100.0, "noise_std")
-        in_range(self.gain, 0.05, 20.0, "gain")
         ov = self.gsoe_overrides
         require(isinstance(ov, Mapping), "gsoe_overrides", f"must be a table, got {type(ov).__name__}")
         for section, values in ov.items():
@@ -435,25 +370,23 @@ class CameraSimConfig:
 
 
 @dataclass(frozen=True)
-class Scenario:
+class Scenario(Validated):
     """One simulated flight: world, mission, wind, sensors and camera, plus run length, seed and dynamics step."""
 
     name: str
     mission: MissionConfig
     description: str = ""
-    duration_s: float = 600.0
-    seed: int = 0
-    dt_s: float = 1.0 / 240.0
+    duration_s: Annotated[float, In(0.0, DURATION_MAX_S, lo_open=True)] = 600.0
+    seed: Annotated[int, In(0, SEED_MAX)] = 0
+    dt_s: Annotated[float, In(DT_MIN_S, DT_MAX_S)] = 1.0 / 240.0
     terrain: TerrainConfig = field(default_factory=TerrainConfig)
     wind: WindConfig = field(default_factory=WindConfig)
     sensors: SensorsConfig = field(default_factory=SensorsConfig)
     camera: CameraSimConfig = field(default_factory=CameraSimConfig)
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         require(bool(self.name.strip()), "name", "must not be empty")
-        in_range(self.duration_s, 0.0, DURATION_MAX_S, "duration_s", lo_open=True)
-        in_range(self.seed, 0, SEED_MAX, "seed")
-        in_range(self.dt_s, DT_MIN_S, DT_MAX_S, "dt_s")
         max_rate = (1.0 / self.dt_s) * (1.0 + RATE_TOLERANCE)
         rates = {
             "sensors.imu.rate_hz": self.sensors.imu.rate_hz,

@@ -52,12 +52,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Final
+from typing import Annotated, Final
 
 import numpy as np
 from numpy.typing import NDArray
 
-from common.config import in_range, require
+from common.config import FINITE, In, Validated, require
 
 FT_M: Final = 0.3048
 TURB_HEIGHT_MIN_M: Final = 10.0 * FT_M
@@ -80,39 +80,28 @@ whose cancellation error is ~1e-16 / x^3."""
 
 
 @dataclass(frozen=True)
-class WindParams:
+class WindParams(Validated):
     """True wind of a run (SI units, radians).  See the module docstring for the model of each part."""
 
-    speed_m_s: float = 0.0
-    from_rad: float = 0.0
-    ref_height_m: float = 6.0
+    speed_m_s: Annotated[float, In(0.0, 60.0)] = 0.0
+    from_rad: Annotated[float, FINITE] = 0.0
+    ref_height_m: Annotated[float, In(0.1, 1000.0)] = 6.0
     shear: bool = True
-    roughness_m: float = 0.15 * FT_M
+    roughness_m: Annotated[float, In(1e-4, 3.0)] = 0.15 * FT_M
     turbulence: bool = False
-    turbulence_w20_m_s: float = LIGHT_W20_M_S
-    turbulence_scale: float = 1.0
-    turbulence_rate_hz: float = 240.0
+    turbulence_w20_m_s: Annotated[float, In(0.0, 60.0)] = LIGHT_W20_M_S
+    turbulence_scale: Annotated[float, In(0.0, 10.0)] = 1.0
+    turbulence_rate_hz: Annotated[float, In(1.0, 10000.0)] = 240.0
     gusts: bool = False
-    gust_amplitude_m_s: float = 3.0
-    gust_length_m: float = 30.0
-    gust_rate_hz: float = 0.0
-    gust_times_s: tuple[float, ...] = ()
+    gust_amplitude_m_s: Annotated[float, In(0.0, 40.0)] = 3.0
+    gust_length_m: Annotated[float, In(1.0, 2000.0)] = 30.0
+    gust_rate_hz: Annotated[float, In(0.0, 1.0)] = 0.0
+    gust_times_s: Annotated[tuple[float, ...], In(0.0, 1e7)] = ()
 
     def __post_init__(self) -> None:
-        in_range(self.speed_m_s, 0.0, 60.0, "speed_m_s")
-        require(math.isfinite(self.from_rad), "from_rad", f"must be finite, got {self.from_rad!r}")
-        in_range(self.roughness_m, 1e-4, 3.0, "roughness_m")
-        in_range(self.ref_height_m, 0.1, 1000.0, "ref_height_m")
+        super().__post_init__()
         require(self.ref_height_m > self.roughness_m, "ref_height_m",
                 f"must be above roughness_m ({self.roughness_m} m), got {self.ref_height_m}")
-        in_range(self.turbulence_w20_m_s, 0.0, 60.0, "turbulence_w20_m_s")
-        in_range(self.turbulence_scale, 0.0, 10.0, "turbulence_scale")
-        in_range(self.turbulence_rate_hz, 1.0, 10000.0, "turbulence_rate_hz")
-        in_range(self.gust_amplitude_m_s, 0.0, 40.0, "gust_amplitude_m_s")
-        in_range(self.gust_length_m, 1.0, 2000.0, "gust_length_m")
-        in_range(self.gust_rate_hz, 0.0, 1.0, "gust_rate_hz")
-        for i, t in enumerate(self.gust_times_s):
-            in_range(t, 0.0, 1e7, f"gust_times_s[{i}]")
 
 
 @dataclass(frozen=True, slots=True)
