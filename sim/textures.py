@@ -11,8 +11,11 @@ Worlds by name (:data:`TEXTURE_NAMES`): the real 10 cm orthophotos ``town_river`
 ``forest_road``, the 5 m NAIP ``farmland`` (RGB of its RGBN bands), ``mosaic`` (the three 10 cm tiles in a
 2 x 2 arrangement), and the procedural ``noise`` (multi-octave value noise, well textured), ``uniform_grass``
 (near-uniform, tiny variation) and ``water`` (near-uniform with faint ripples).  Origins and licences of the real
-tiles: ``sim/data/textures/SOURCES.md``.  No-data (black) areas of a real tile are cut away (largest valid
-axis-aligned rectangle), so no-data never enters the world.
+tiles: ``sim/data/textures/SOURCES.md``.  No-data areas of a real tile are cut away (largest valid axis-aligned
+rectangle), so no-data never enters the world.  No-data is only what is declared (:func:`read_nodata_mask`): the
+file's GeoTIFF no-data tag (``GDAL_NODATA``), its alpha channel, or an explicit value given with the tile (the
+``nodata_bgr`` of :data:`REAL_TEXTURES`, or a caller's); never a colour, since real ground can be black (open
+water in shadow, fresh asphalt).
 
 Mip-mapping: the tile's pyramid (a binomial low-pass and decimation like ``cv2.pyrDown``, but centred between
 texels so that the levels nest exactly; mirror border, consistent with the mirror tiling, see :func:`downsample`)
@@ -26,6 +29,7 @@ from __future__ import annotations
 import functools
 import logging
 import math
+import re
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -40,12 +44,14 @@ logger = logging.getLogger(__name__)
 
 TEXTURE_DIR = Path(__file__).resolve().parent / "data" / "textures"
 
-REAL_TEXTURES: dict[str, tuple[str, float]] = {
-    # name -> (file in TEXTURE_DIR, metres per texel)
-    "town_river": ("oam_town_river_10cm.tif", 0.10),
-    "dry_grassland": ("oam_dry_grassland_10cm.tif", 0.10),
-    "forest_road": ("neon_yell_forest_road_10cm.png", 0.10),
-    "farmland": ("naip_farmland_wetland_2010_5m.tif", 5.0),
+REAL_TEXTURES: dict[str, tuple[str, float, tuple[int, int, int] | None]] = {
+    # name -> (file in TEXTURE_DIR, metres per texel, explicit no-data colour (B, G, R) or None)
+    # The OAM tile's corner outside the survey is written as 0 and the file declares no no-data value: declared here.
+    "town_river": ("oam_town_river_10cm.tif", 0.10, (0, 0, 0)),
+    "dry_grassland": ("oam_dry_grassland_10cm.tif", 0.10, None),
+    "forest_road": ("neon_yell_forest_road_10cm.png", 0.10, None),
+    # NAIP declares GDAL_NODATA 0 (no pixel has it in every band; its dark water stays ground)
+    "farmland": ("naip_farmland_wetland_2010_5m.tif", 5.0, None),
 }
 # mosaic cells, row by row: (tile, rotated by 180 deg)
 MOSAIC_LAYOUT: tuple[tuple[tuple[str, bool], ...], ...] = (
@@ -57,8 +63,9 @@ TEXTURE_NAMES: tuple[str, ...] = (*REAL_TEXTURES, "mosaic", *PROCEDURAL_TEXTURES
 
 # Smallest side (texels) of the coarsest mip level; the pyramid stops before a level would be smaller.
 TOP_LEVEL_MIN_PX = 8
-# No-data: texels whose colour channels are all <= this (GeoTIFF no-data is written as 0).
-NODATA_MAX_DN = 0
+# TIFF tags of GDAL's no-data value (ASCII) and metadata (XML, with each band's colour interpretation).
+TIFF_TAG_GDAL_NODATA = 42113
+TIFF_TAG_GDAL_METADATA = 42112
 # No-data is cut away on a grid of blocks this size; a block touching no-data, or next to a block that does
 # (to drop the anti-aliased rim of the no-data edge), is invalid.
 NODATA_BLOCK_PX = 16
@@ -147,14 +154,64 @@ def _largest_valid_rectangle(valid: NDArray[np.bool_]) -> tuple[int, int, int, i
     return best[1]
 
 
-def crop_nodata(bgr: NDArray[np.uint8], name: str) -> NDArray[np.uint8]:
-    """Cut a tile down to its largest rectangle free of no-data (all channels <= :data:`NODATA_MAX_DN`).
+def read_nodata_mask(path: str | Path, nodata_bgr: tuple[int, int, int] | None = None
+                     ) -> tuple[NDArray[np.bool_] | None, str]:
+    """The texels a tile file declares as no-data, and where the declaration came from (``""``: none).
+
+    * GeoTIFF ``GDAL_NODATA`` tag: texels whose every band equals that value;
+    * an alpha channel (PNG or TIFF with alpha; a TIFF band GDAL's metadata calls anything but ``Alpha`` is not
+      one: NAIP's fourth band is near infrared): texels of alpha 0;
+    * ``nodata_bgr``: texels of exactly that colour (B, G, R), for a file that declares nothing.
+    Never a colour the file does not declare.  None when nothing is declared or no texel is no-data."""
+    from PIL import Image
+
+    masks: list[NDArray[np.bool_]] = []
+    how: list[str] = []
+    with Image.open(path) as im:
+        tags = dict(getattr(im, "tag_v2", {}) or {})
+        bands = np.asarray(im)
+        mode = im.mode
+    if bands.ndim == 2:
+        bands = bands[:, :, None]
+    tag = tags.get(TIFF_TAG_GDAL_NODATA)
+    if tag is not None:
+        try:
+            value = float(str(tag).strip().strip("\x00"))
+        except ValueError:
+            value = math.nan
+        if math.isfinite(value):
+            masks.append(np.all(bands == value, axis=2))
+            how.append(f"GDAL_NODATA {value:g}")
+    if mode in ("RGBA", "LA", "PA") and _last_band_is_alpha(str(tags.get(TIFF_TAG_GDAL_METADATA, "")),
+                                                            bands.shape[2]):
+        masks.append(bands[:, :, -1] == 0)
+        how.append("alpha channel")
+    if nodata_bgr is not None:
+        rgb = bands[:, :, :3]
+        masks.append(np.all(rgb == np.asarray(nodata_bgr[::-1]), axis=2))
+        how.append(f"declared colour BGR {tuple(nodata_bgr)}")
+    if not masks:
+        return None, ""
+    mask = np.logical_or.reduce(masks)
+    return (mask if mask.any() else None), ", ".join(how)
+
+
+def _last_band_is_alpha(gdal_metadata: str, n_bands: int) -> bool:
+    """False when GDAL's metadata gives the last band a colour interpretation other than alpha."""
+    m = re.search(rf'name="COLORINTERP" sample="{n_bands - 1}"[^>]*>([^<]*)<', gdal_metadata)
+    return m is None or m.group(1).strip().lower() == "alpha"
+
+
+def crop_nodata(bgr: NDArray[np.uint8], name: str, nodata: NDArray[np.bool_] | None) -> NDArray[np.uint8]:
+    """Cut a tile down to its largest rectangle free of the declared no-data texels ``nodata`` (a mask of the
+    tile's shape from :func:`read_nodata_mask`; None: nothing to cut).
 
     Works on blocks of :data:`NODATA_BLOCK_PX` texels, dropping blocks next to no-data too (the anti-aliased rim).
     Raises ``ValueError`` when nothing valid is left."""
-    nodata = np.all(bgr <= NODATA_MAX_DN, axis=2)
-    if not nodata.any():
+    if nodata is None or not nodata.any():
         return bgr
+    if nodata.shape != bgr.shape[:2]:
+        raise ValueError(f"texture {name!r}: no-data mask {nodata.shape} does not match the tile {bgr.shape[:2]}")
     b = NODATA_BLOCK_PX
     h, w = nodata.shape
     hb, wb = -(-h // b), -(-w // b)
@@ -184,10 +241,18 @@ def read_bgr(path: str | Path) -> NDArray[np.uint8]:
     return np.asarray(bgr, dtype=np.uint8)
 
 
+def load_tile(path: str | Path, nodata_bgr: tuple[int, int, int] | None = None, name: str = "") -> NDArray[np.uint8]:
+    """A tile file as BGR uint8 with its declared no-data (:func:`read_nodata_mask`) cropped away."""
+    mask, how = read_nodata_mask(path, nodata_bgr)
+    if mask is not None:
+        logger.debug("texture %s: no-data from %s", name or path, how)
+    return crop_nodata(read_bgr(path), name or str(path), mask)
+
+
 def load_real_tile(name: str) -> tuple[NDArray[np.uint8], float]:
-    """The real tile ``name`` as BGR uint8 (no-data cropped away) and its metres per texel."""
-    file, m_per_px = REAL_TEXTURES[name]
-    return crop_nodata(read_bgr(TEXTURE_DIR / file), name), m_per_px
+    """The real tile ``name`` as BGR uint8 (declared no-data cropped away) and its metres per texel."""
+    file, m_per_px, nodata_bgr = REAL_TEXTURES[name]
+    return load_tile(TEXTURE_DIR / file, nodata_bgr, name), m_per_px
 
 
 def _reflect_pad_to(a: NDArray, height: int, width: int) -> NDArray:
