@@ -22,6 +22,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "replay-frames": ("cli.cmd_replay_frames", "a real image sequence through the optical pipeline, against its "
                                                "reference velocity"),
     "companion": ("cli.cmd_companion", "run the companion app next to an autopilot"),
+    "sitl-camera": ("cli.cmd_sitl_camera", "render the belly camera of a plane flown by ArduPlane SITL (its "
+                                           "SIM_STATE) as the simulator's frame stream"),
     "montecarlo": ("cli.cmd_montecarlo", "run a seeded Monte Carlo campaign of simulated flights"),
 }
 
