@@ -27,14 +27,18 @@ The reference is the last accepted sample of the kind; the comparison is skipped
 after a gap of the stream (no sample of the kind, accepted or not, for ``plausibility_max_gap_s``: a link loss),
 so a burst of rejected samples cannot age the reference away.  A genuine step must not lock a stream out: when
 ``plausibility_confirm_samples`` consecutive samples of one kind have been rejected and agree with each other
-(IMU: each within the jump thresholds of the first of them; attitude: each passing the rate test against the one
-before it), the last of them is accepted and becomes the new reference (counted as ``reanchored``).  A step
-larger than the thresholds so costs the samples before it was confirmed (2 at the default: 8 ms at the simulator's
-240 Hz, 40 ms at 50 Hz).
+(IMU: each within the jump thresholds of the first of them and agreeing with the AHRS rate; attitude: a smooth
+run, each rate between two of them close to the one before), the last of them is accepted and becomes the new
+reference (counted as ``reanchored``).  A step larger than the thresholds so costs the samples before it was
+confirmed (2 at the default: 8 ms at the simulator's 240 Hz, 40 ms at 50 Hz).
 
 Every rejection is counted by kind and reason in :attr:`SamplePlausibility.status` and written to the
 ``samples_rejected`` stream (``t_us``, ``kind``, ``reason``, ``excess``: the largest difference found, in the
 test's unit).
+
+These tests stop isolated and scattered garbage.  A sender that replaces a stream with values consistent with each
+other (and, for the IMU, with the AHRS rate) gets through once confirmed: only MAVLink signing stops that
+(docs/security.md).
 """
 
 from __future__ import annotations
@@ -57,6 +61,7 @@ US_PER_S = 1_000_000
 LOG_EVERY = 100  # a rejection reason is logged at its first occurrence and then every this many
 
 Vec3 = tuple[float, float, float]
+JUMPS = ("specific force jump", "rate jump")   # the IMU reasons a confirmed run overrides
 
 
 @dataclass
@@ -145,9 +150,10 @@ class SamplePlausibility:
             self._imu_run.clear()
             self._accept_imu(t, g, a)
             return True
-        if reason != "stamp not increasing" and self._confirmed_imu(t, g, a):
+        if reason in JUMPS and self._confirmed_imu(t, g, a):
             self._count_reanchor("imu", t)
-            self._ahrs_rate = None            # what the run disagreed with is suspect too: wait for a new one
+            self._gyro_sum = [0.0, 0.0, 0.0]  # the gyro accepted before the change says nothing of the AHRS now
+            self._gyro_n = 0
             self._accept_imu(t, g, a)
             return True
         self._reject("imu", t, reason, excess)
@@ -166,16 +172,26 @@ class SamplePlausibility:
                 d = _max_abs_diff(g, self._gyro)
                 if d > self._gyro_step:
                     return "rate jump", d
-        if self._ahrs_diff > 0.0 and self._ahrs_rate is not None and abs(t - self._ahrs_rate_t_us) <= self._gap_us:
-            d = _max_abs_diff(g, self._ahrs_rate)
-            if d > self._ahrs_diff:
-                return "gyro disagrees with the AHRS rate", d
+        d = self._ahrs_excess(t, g)
+        if d > self._ahrs_diff:
+            return "gyro disagrees with the AHRS rate", d
         return "", 0.0
 
+    def _ahrs_excess(self, t: int, g: Vec3) -> float:
+        """The largest difference (rad/s) between the gyro ``g`` and the recent AHRS rate; 0 without one (or with
+        the test off)."""
+        if self._ahrs_diff <= 0.0 or self._ahrs_rate is None or abs(t - self._ahrs_rate_t_us) > self._gap_us:
+            return 0.0
+        return _max_abs_diff(g, self._ahrs_rate)
+
     def _confirmed_imu(self, t: int, g: Vec3, a: Vec3) -> bool:
-        """The rejected run so far plus this sample: confirmed when long enough and each of its samples within the
-        jump thresholds of the run's first (a lasting change, not scattered garbage)."""
+        """The rejected run so far plus this sample: confirmed when long enough, each of its samples within the
+        jump thresholds of the run's first and agreeing with the AHRS rate (a lasting change the attitude shows
+        too, not scattered garbage nor a repeated spoof)."""
         run = self._imu_run
+        if self._ahrs_excess(t, g) > self._ahrs_diff:
+            run.clear()
+            return False
         if run and (t - run[-1][0] > self._gap_us or not self._close(run[0], g, a)):
             run.clear()
         run.append((t, g, a))
@@ -242,11 +258,16 @@ class SamplePlausibility:
         return "", 0.0, rate
 
     def _confirmed_attitude(self, s: AttitudeSample) -> bool:
-        """The rejected run so far plus ``s``: confirmed when long enough and each of its samples passes the rate
-        test against the one before it (the AHRS moved on, not scattered garbage)."""
+        """The rejected run so far plus ``s``: confirmed when long enough and smooth, the rate between each two of
+        its samples within ``gyro_ahrs_max_diff_rad_s`` of the rate between the two before (the AHRS moved on, not
+        scattered garbage).  The gyro is not asked: it may be what made the run's start fail."""
         run = self._att_run
-        if run and (s.t_us - run[-1].t_us > self._gap_us or self._attitude_test(run[-1], s)[0]):
+        if run and s.t_us - run[-1].t_us > self._gap_us:
             run.clear()
+        if len(run) >= 2:
+            r1, r2 = ahrs_body_rate(run[-2], run[-1]), ahrs_body_rate(run[-1], s)
+            if r1 is None or r2 is None or (self._ahrs_diff > 0.0 and _max_abs_diff(r1, r2) > self._ahrs_diff):
+                run.clear()
         run.append(s)
         if len(run) < self._confirm:
             return False

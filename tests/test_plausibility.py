@@ -227,3 +227,20 @@ def test_a_lasting_ahrs_step_is_accepted_once_confirmed():
         ok.append(p.attitude(AttitudeSample(k * 20_000, 0.0, 0.0, 1.3)))
     assert ok == [False, False] + [True] * 8
     assert p.status.reanchored == {"attitude": 1}
+
+
+def test_a_repeated_spoof_that_replaces_the_imu_stream_is_never_confirmed_and_locks_nothing_out():
+    """The fuzz flight of seed 5: the issue's SCALED_IMU (15.3 g, 30 rad/s per axis) arrives five times in a row in
+    place of the genuine samples (the link dropped those: same stamps).  The run agrees with itself but not with the
+    AHRS, so it is never confirmed; the attitude and the genuine IMU samples after it are all accepted."""
+    p = SamplePlausibility(PipelineConfig())
+    accel, spoof_gyro, spoof_acc = np.array([0.0, 0.0, -G]), np.full(3, 30.0), np.full(3, 15.3 * G)
+    imu_ok, att_ok = [], []
+    for k in range(1, 60):
+        t = k * 20_000
+        spoofed = 20 <= k < 25
+        imu_ok.append(p.imu(ImuSample(t - 1000, spoof_gyro if spoofed else np.zeros(3),
+                                      spoof_acc if spoofed else accel)))
+        att_ok.append(p.attitude(AttitudeSample(t, 0.0, 0.0, 0.5)))
+    assert imu_ok[19:24] == [False] * 5 and all(imu_ok[:19]) and all(imu_ok[24:])
+    assert all(att_ok) and p.status.reanchored == {}
