@@ -55,6 +55,7 @@ from gsoe.camera import CameraModel
 from gsoe.config import GsoeConfig
 from nav.gnss_monitor import Announcement, Consistency, GnssMonitor, GnssMonitorConfig, GnssState
 from nav.guidance import GuidanceConfig, TargetGuidance, change_heading_command_fields, forward_camera
+from nav.hygiene import pixel_in_image
 from nav.link import (
     CompanionLink,
     HomeReading,
@@ -471,7 +472,7 @@ class Companion:
         if gcs_url:
             from nav.signing import CommandEndpoint
 
-            self.gcs = CommandEndpoint(gcs_url, signing_key)
+            self.gcs = CommandEndpoint(gcs_url, signing_key, lc.system_id, lc.component_id)
 
     def _log(self, stream: str, record: dict[str, Any]) -> None:
         """Write a record, numpy scalars as Python numbers (their repr is not a number in numpy 2)."""
@@ -665,14 +666,15 @@ class Companion:
             if msg.get_type() != "COMMAND_LONG" or msg.command != MAV_CMD_USER_1:
                 continue
             xy = (float(msg.param1), float(msg.param2))
-            ok = all(math.isfinite(v) for v in xy)
+            ok = pixel_in_image(xy, self.camera.size_px)       # the endpoint passes only commands addressed to us
             if ok:
                 self.tracker.drop()
                 self.guidance.reset()
                 self._guiding = False
                 self.target_px = xy
                 log.info("ground station designated the target at %s", xy)
-            self.gcs.conn.mav.command_ack_send(MAV_CMD_USER_1, 0 if ok else 2)
+            self.gcs.conn.mav.command_ack_send(MAV_CMD_USER_1, 0 if ok else 2, 0, 0, msg.get_srcSystem(),
+                                               msg.get_srcComponent())
 
     # ---------------------------------------------------------------- loop
     def _housekeeping(self) -> None:
