@@ -12,12 +12,16 @@ Frames
     ``c``  raw camera, OpenCV convention: z along the optical axis (out of the lens), x to the right of the
            image (increasing column), y to the bottom of the image (increasing row).  The belly camera's
            nominal mounting is z_c = z_b (looking down), x_c = y_b (image right = right wing),
-           y_c = -x_b (image up = nose).  A calibrated camera file adds a small mounting rotation.
+           y_c = -x_b (image up = nose).  A camera file's ``mount_rpy_deg`` rotates that nominal mounting by any
+           rotation: a small misalignment, or an oblique or turned camera (CLIF's looks 9 deg right of the body's
+           z axis with image x forward).  The camera model is OpenCV's pinhole (radial-tangential) or fisheye.
     ``s``  stabilised image (the *virtual nadir camera* of one TM cycle): a level pinhole camera at the
            aircraft, looking straight down, its image "up" (decreasing row) pointing along the cycle's base
            heading ``base_yaw_rad`` and its image right (increasing column) pointing 90 deg clockwise of it.
            Over flat ground this image is an orthographic map with a uniform ground sample distance
-           ``gsd_m_px = height_agl_m / focal_px``.
+           ``gsd_m_px = height_agl_m / focal_px``.  Its window lies around the nadir (``stab.roi_centre =
+           "nadir"``) or around the ground point of the raw image's centre (``"view"``, a camera that does not see
+           the nadir); either way the steps below are the nadir's migration.
 Displacements
     The template's migration is reported as ``dx_px`` (cross track, positive to the right of the base heading)
     and ``dy_px`` (along track, positive forward along the base heading), accumulated since the base snapshot.
