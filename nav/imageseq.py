@@ -210,8 +210,8 @@ def read_clif2007(folder: str | Path, ground_level_m: float | None = None) -> Im
 
     POS record (one CSV line): heading, pitch, roll (deg; read as the 3-2-1 Euler attitude of the INS frame, FRD,
     which makes the bundle-adjusted cameras agree with one fixed mount within a median 1.1 deg, against 12 deg with
-    the roll's sign flipped), latitude, longitude (deg), altitude (ft, said to be above mean sea level), GPS seconds of the
-    week, GPS week, velocity north, east, up (m/s), three flags.  ``t_us`` is the GPS time since the first frame;
+    the roll's sign flipped), latitude, longitude (deg), altitude (ft, said to be above mean sea level), GPS seconds
+    of the week, GPS week, velocity north, east, up (m/s), three flags.  ``t_us`` is the GPS time since the first frame;
     the reference velocity is the INS velocity.
 
     Height above ground: the INS altitude minus the ground's level on the same datum, ``ground_level_m``, or, when
