@@ -38,22 +38,17 @@ from gsoe.camera import CameraModel
 from gsoe.rotation import R_nb_from_euler
 from pipeline.config import load_gsoe_config
 from pipeline.navpipeline import FrameResult, NavPipeline, pipeline_config_from_raw
-from sim.autopilot import Autopilot, Waypoint
-from sim.dynamics import DynamicsParams, FlightDynamics
+from sim.flight import build_flight, wind_params
 from sim.render import CameraRenderer
 from sim.report import gnss_drift_series
 from sim.scenario import Scenario, gsoe_config_for
-from sim.sensors import SensorSuite
 from sim.textures import GroundWorld
 from sim.truth import TruthState
-from sim.wind import LIGHT_W20_M_S, WindParams
 
 log = logging.getLogger(__name__)
 
 # Wind and drift figures are taken after this much flight, once the first turns have made the wind observable.
 SETTLE_S = 60.0
-# Milspec W20 (wind speed at 20 ft) per scenario severity: light 15 kt, moderate 30 kt, severe 45 kt.
-SEVERITY_W20_M_S = {"light": LIGHT_W20_M_S, "moderate": 2.0 * LIGHT_W20_M_S, "severe": 3.0 * LIGHT_W20_M_S}
 # Wind figures compare with the total wind the aircraft flies in, averaged over this window (the turbulence's
 # long-wavelength part is real wind an estimator should follow; its fast part is not observable).
 WIND_TRUTH_WINDOW_S = 5.0
@@ -62,18 +57,6 @@ OUTAGE_END_GUARD_S = 0.5
 # NEES state: position N/E, velocity N/E, wind N/E.
 NEES_DOF = 6
 US_PER_S = 1_000_000
-
-
-def wind_params(scn: Scenario) -> WindParams:
-    w = scn.wind
-    return WindParams(
-        speed_m_s=w.speed_m_s, from_rad=w.from_rad, ref_height_m=w.ref_height_m, shear=w.shear,
-        roughness_m=w.roughness_m, turbulence=w.turbulence,
-        turbulence_w20_m_s=SEVERITY_W20_M_S[w.turbulence_severity], turbulence_scale=w.turbulence_scale,
-        gusts=w.gusts, gust_amplitude_m_s=w.gust_amplitude_m_s, gust_length_m=w.gust_length_m,
-        gust_rate_hz=1.0 / w.gust_interval_s if w.gusts and w.gust_interval_s > 0 else 0.0,
-        turbulence_rate_hz=w.turbulence_rate_hz,
-    )
 
 
 @dataclass
@@ -182,19 +165,12 @@ def run_flight(scn: Scenario, *, seed: int, duration_s: float | None = None, out
     duration = scn.duration_s if duration_s is None else float(duration_s)
     if not (duration > 0 and math.isfinite(duration)):
         raise ValueError(f"duration_s must be > 0, got {duration_s!r}")
-    rng = np.random.default_rng(seed)
-    rng_dyn, rng_sens, rng_cam = rng.spawn(3)
-
+    # dynamics, autopilot and sensors as the SIL vehicle builds them for a scenario (sim.flight: the seeding)
+    flight = build_flight(scn, seed)
+    dyn, ap, sensors, rng_cam = flight.dyn, flight.autopilot, flight.sensors, flight.rng_cam
     world = GroundWorld.from_name(scn.terrain.texture, seed=seed)
     renderer = CameraRenderer(true_camera, world)
     frame_buf = np.zeros((renderer.height_px, renderer.width_px), np.uint8)
-    dyn = FlightDynamics(DynamicsParams(dt_s=scn.dt_s), wind_params(scn), rng_dyn)
-    st = scn.mission.start
-    trim = dyn.trim(st.north_m, st.east_m, st.height_m, st.airspeed_m_s, st.yaw_rad)
-    ap = Autopilot(trim=trim)
-    ap.set_mission([Waypoint(w.north_m, w.east_m, w.height_m, w.airspeed_m_s) for w in scn.mission.waypoints],
-                   loop=scn.mission.loop)
-    sensors = SensorSuite(scn.sensors, scn.camera, rng_sens)
     runlog = RunLog(out_dir) if out_dir is not None else None
     series = _Series()
     timers = _Timers()
