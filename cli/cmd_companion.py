@@ -6,8 +6,8 @@ opens), or ``sim://127.0.0.1:PORT`` for the simulator's frame stream (``python -
 ``--target-px X,Y`` designates a target to track and fly to (video-tracking guidance); a ground station can
 designate one later over ``--gcs URL`` (COMMAND_LONG MAV_CMD_USER_1, param1/param2 = pixel), signed with
 ``--signing-key FILE`` (then unsigned commands are refused).  ``--set DOTTED.KEY=VALUE`` (repeatable) overrides one
-value of the ``[companion]`` or ``[ekf]`` tables of the configuration file, written as in TOML
-(``--set companion.guidance.correct_drift=false``, ``--set 'companion.tracking.source="mavlink"'``).
+value of any table of the configuration file, written as in TOML (``--set companion.guidance.correct_drift=false``,
+``--set 'companion.tracking.source="mavlink"'``, ``--set stab.template_px=21``), checked as the file's own values.
 Stops cleanly on SIGINT/SIGTERM; ``kill -9`` loses at most the last ``[companion] log_flush_s`` of the log.
 A ``--log-dir`` that holds another run's logs is never appended to: the companion logs into the next free
 ``DIR-2``, ``DIR-3``, ... beside it (it must not refuse to fly), or replaces them with ``--overwrite``
@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from common.config import ConfigError
-from common.configfile import apply_overrides, parse_override
+from common.configfile import parse_override
 
 log = logging.getLogger(__name__)
 
@@ -68,8 +68,7 @@ def run(args: argparse.Namespace) -> int:
     from nav.companion import Companion
     from pipeline.config import load_gsoe_config
 
-    gsoe_cfg, raw = load_gsoe_config(args.config)
-    raw = apply_overrides(raw, args.settings)
+    gsoe_cfg, raw = load_gsoe_config(args.config, overrides=args.settings)
     asked = Path(args.log_dir or Path("logs") / time.strftime("companion-%Y%m%dT%H%M%SZ", time.gmtime()))
     log_dir = str(claim_run_folder(asked, overwrite=args.overwrite, numbered=True))
     if Path(log_dir) != asked:

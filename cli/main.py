@@ -57,6 +57,9 @@ def main(argv: list[str] | None = None) -> int:
     except (FileExistsError, NotADirectoryError) as e:  # an output folder in use (common.logio.claim_run_folder)
         print(f"gsoe {args.command}: {e}", file=sys.stderr)
         return 2
+    except OSError as e:  # any other path the command cannot use (a folder for a file, no permission)
+        print(f"gsoe {args.command}: {e.strerror or e}{f': {e.filename}' if e.filename else ''}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print(f"gsoe {args.command}: interrupted", file=sys.stderr)
         return 130

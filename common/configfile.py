@@ -1,8 +1,12 @@
-"""Reading configuration files (TOML): the project's config folder, parsing with file-named errors, relative paths."""
+"""Reading configuration files (TOML): the project's config folder, parsing with file-named errors, relative paths,
+the known top-level tables and ``--set`` overrides."""
 
 from __future__ import annotations
 
+import difflib
+import functools
 import tomllib
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -13,15 +17,43 @@ DEFAULT_CONFIG = CONFIG_DIR / "default.toml"
 
 
 def read_toml(path: str | Path) -> dict[str, Any]:
-    """Parse a TOML file; a missing or malformed file raises :class:`ConfigError` naming the file."""
+    """Parse a TOML file; a file that is missing, unreadable (a folder, no permission), not UTF-8 text or not valid
+    TOML raises :class:`ConfigError` naming the file."""
     p = Path(path)
     try:
         with p.open("rb") as fh:
             return tomllib.load(fh)
     except FileNotFoundError:
         raise ConfigError(str(p), "file not found") from None
+    except IsADirectoryError:
+        raise ConfigError(str(p), "is a folder, not a TOML file") from None
+    except OSError as e:
+        raise ConfigError(str(p), f"cannot be read: {e.strerror or e}") from None
+    except UnicodeDecodeError as e:
+        raise ConfigError(str(p), f"not a TOML file: not UTF-8 text (byte {e.start})") from None
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(str(p), f"not valid TOML: {e}") from None
+
+
+@functools.cache
+def _default_tables() -> frozenset[str]:
+    return frozenset(read_toml(DEFAULT_CONFIG))
+
+
+def known_tables(extra: Iterable[str] = ()) -> frozenset[str]:
+    """The top-level tables a configuration file may hold: those of ``config/default.toml`` (which documents every
+    table the packages read) and ``extra``, the tables a caller reads beyond them."""
+    return _default_tables() | frozenset(extra)
+
+
+def check_table(name: str, where: str, extra: Iterable[str] = ()) -> None:
+    """Refuse a top-level key that is not a known table (a misspelt ``[ekff]`` would otherwise be ignored and its
+    values silently replaced by the defaults); the :class:`ConfigError` is named ``where``."""
+    known = known_tables(extra)
+    if name not in known:
+        close = difflib.get_close_matches(name, sorted(known), n=1)
+        hint = f" (did you mean [{close[0]}]?)" if close else ""
+        raise ConfigError(where, f"unknown table{hint}; known: {', '.join(sorted(known))}")
 
 
 def resolve(path: str | Path, base: Path) -> Path:
