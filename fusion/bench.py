@@ -5,7 +5,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from typing import Any
 
@@ -24,7 +23,8 @@ def bench_ekf_step(n: int = 2000, *, cfg: EkfConfig | None = None, imu_rate_hz: 
     """Time ``n`` camera frames of the EKF flying straight and level at ``airspeed_m_s`` (no wind).
 
     One frame = the IMU samples of one camera period (``imu_rate_hz / camera_rate_hz`` calls to ``predict``, which
-    accumulate into a covariance prediction at the measurements' stamp, or earlier every ``cfg.predict_period_s``)
+    accumulate into a covariance prediction at the measurements' stamp, or earlier every
+    ``cfg.timing.predict_period_s``)
     + one optical step + one airspeed sample (with the synthetic sideslip) + one baro sample; GNSS is off (the
     outage case the estimator is for).
 
@@ -35,7 +35,7 @@ def bench_ekf_step(n: int = 2000, *, cfg: EkfConfig | None = None, imu_rate_hz: 
     """
     if n < 1:
         raise ValueError(f"n: must be >= 1, got {n}")
-    cfg = dataclasses.replace(cfg or EkfConfig(), fusion_delay_s=0.0)
+    cfg = (cfg or EkfConfig()).replace(timing={"fusion_delay_s": 0.0})
     imu_per_frame = max(1, round(imu_rate_hz / camera_rate_hz))
     imu_dt_us = round(1e6 / imu_rate_hz)
     ekf = NavEkf(cfg, t_us=0, pos_ned_m=[0.0, 0.0, -height_m], vel_ned_m_s=[airspeed_m_s, 0.0, 0.0])

@@ -84,7 +84,7 @@ Mat = NDArray[np.float64]
 
 #: Aid sources with a status record, in logging order.
 AID_SOURCES: tuple[str, ...] = ("imu", *(src.name for src in SOURCES))
-#: The sources whose fusion keeps the output valid (``valid_aid_timeout_s``).
+#: The sources whose fusion keeps the output valid (``validity.aid_timeout_s``).
 POSITION_AIDS = ("optical", "gnss_pos", "gnss_vel")
 
 __all__ = [
@@ -221,8 +221,8 @@ class NavEkf:
 
     def fuse_airspeed(self, t_us: int, tas_m_s: float) -> None:
         """Push a true airspeed sample (m/s) measured at ``t_us``; the sideslip pseudo-measurement (side-force
-        sideslip, or zero) is fused with it (``cfg.sideslip_fusion``), and so is the lift-model angle of attack
-        (``cfg.aoa_fusion``)."""
+        sideslip, or zero) is fused with it (``cfg.sideslip.enabled``), and so is the lift-model angle of attack
+        (``cfg.aoa.enabled``)."""
         self.push("airspeed", t_us, tas_m_s)
 
     def fuse_baro(self, t_us: int, alt_m: float) -> None:

@@ -169,13 +169,13 @@ def validity(cfg: EkfConfig, has_att: bool, vel_sd_max: float, gs: float, drift_
     c = cfg
     if not has_att:
         return False, REASON_NO_ATTITUDE
-    if vel_sd_max > c.valid_vel_sigma_max_m_s:
+    if vel_sd_max > c.validity.vel_sigma_max_m_s:
         return False, "velocity sigma above valid_vel_sigma_max_m_s"
-    if gs < c.valid_min_ground_speed_m_s:
+    if gs < c.validity.min_ground_speed_m_s:
         return False, "ground speed below valid_min_ground_speed_m_s"
-    if drift_sd > c.valid_drift_sigma_max_rad:
+    if drift_sd > c.validity.drift_sigma_max_rad:
         return False, "drift sigma above valid_drift_sigma_max_deg"
-    if last_aid_fuse_us < 0 or t_us - last_aid_fuse_us > c.valid_aid_timeout_s * US_PER_S:
+    if last_aid_fuse_us < 0 or t_us - last_aid_fuse_us > c.validity.aid_timeout_s * US_PER_S:
         return False, "no optical or GNSS fused within valid_aid_timeout_s"
     return True, ""
 

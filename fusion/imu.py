@@ -58,13 +58,13 @@ class ImuIntegrator:
         #: lateral specific force (body y, m/s^2), low-passed over sideslip_accel_tau_s (NaN before any sample)
         self.lat_f = math.nan
         self.nrm_f = math.nan                            #: normal specific force (body z, m/s^2), low-passed alike
-        self._lat_rate_per_s = 1.0 / cfg.sideslip_accel_tau_s if cfg.sideslip_accel_tau_s > 0.0 else math.inf
+        self._lat_rate_per_s = 1.0 / cfg.airframe.accel_tau_s if cfg.airframe.accel_tau_s > 0.0 else math.inf
         self.att: AttitudeSample | None = None           #: AHRS attitude of the last processed IMU sample
         self._att_out: AttitudeSample | None = None      # newest pushed attitude (output before any is processed)
         self._Rl: tuple[float, ...] | None = None        # its rotation (body to AHRS-NED), row by row
         self._R_nb: Mat | None = None                    # the same as a matrix (built when a model needs it)
-        self._period_us = round(cfg.predict_period_s * US_PER_S)
-        self._gap_us = round(cfg.imu_max_gap_s * US_PER_S)
+        self._period_us = round(cfg.timing.predict_period_s * US_PER_S)
+        self._gap_us = round(cfg.timing.imu_max_gap_s * US_PER_S)
         #: bumped whenever what the output reads from the IMU (attitude, rates) changes
         self.version = 0
 

@@ -10,10 +10,10 @@ Prediction
 
 Wind
     A walking mean ``wind_mean_ne`` plus first-order Gauss-Markov turbulence: over a prediction of ``dt`` the total
-    wind relaxes as ``wind' = e wind + (1 - e) wind_mean`` (``e = exp(-dt / wind_turb_corr_time_s)``) with the
-    turbulence's noise ``sigma^2 (1 - e^2)``; ``sigma^2`` is estimated in flight (``wind_turb_adapt_time_s``) from
+    wind relaxes as ``wind' = e wind + (1 - e) wind_mean`` (``e = exp(-dt / wind.turb_corr_time_s)``) with the
+    turbulence's noise ``sigma^2 (1 - e^2)``; ``sigma^2`` is estimated in flight (``wind.turb_adapt_time_s``) from
     the estimated turbulence ``wind - wind_mean`` and its variance, so the wind's covariance follows the day's
-    turbulence level.  The vertical wind relaxes to 0 with ``wind_d_sigma_ratio`` times that sigma.
+    turbulence level.  The vertical wind relaxes to 0 with ``wind.vertical_sigma_ratio`` times that sigma.
 """
 
 from __future__ import annotations
@@ -247,19 +247,19 @@ class ProcessModel:
         self._q_cache: dict[int, _NoiseTerms] = {}
         self._decay = 1.0                  # the wind turbulence's decay over the current prediction
         self._decay_wd = 1.0               # the vertical wind's decay over the current prediction
-        self._wd_ratio2 = cfg.wind_d_sigma_ratio**2    # vertical / horizontal turbulence variance
-        #: the turbulence variance in use (m^2/s^2 per axis): ``wind_turb_sigma_m_s^2``, adapted (see step)
-        self.turb_var = cfg.wind_turb_sigma_m_s**2
-        self._turb_var_lo = cfg.wind_turb_sigma_min_m_s**2
-        self._turb_var_hi = cfg.wind_turb_sigma_max_m_s**2
+        self._wd_ratio2 = cfg.wind.vertical_sigma_ratio**2    # vertical / horizontal turbulence variance
+        #: the turbulence variance in use (m^2/s^2 per axis): ``wind.turb_sigma_m_s^2``, adapted (see step)
+        self.turb_var = cfg.wind.turb_sigma_m_s**2
+        self._turb_var_lo = cfg.wind.turb_sigma_min_m_s**2
+        self._turb_var_hi = cfg.wind.turb_sigma_max_m_s**2
         rw = np.zeros(S.dim)               # random-walk variance rates of the slow states (per second)
-        for name, q in (("wind_mean_ne", cfg.wind_rw_m_s_per_rt_s), ("wind_ne", cfg.wind_rw_m_s_per_rt_s),
-                        ("accel_bias_b", cfg.accel_bias_rw_m_s2_per_rt_s),
-                        ("yaw_bias", cfg.yaw_bias_rw_rad_per_rt_s), ("opt_rot", cfg.opt_rot_rw_rad_per_rt_s),
-                        ("baro_bias", cfg.baro_bias_rw_m_per_rt_s), ("terrain_h", cfg.terrain_rw_m_per_rt_s),
-                        ("tas_scale", cfg.tas_scale_rw_per_rt_s), ("att_delay", cfg.att_delay_rw_s_per_rt_s),
-                        ("side_force_ofs", cfg.side_force_ofs_rw_m_s2_per_rt_s),
-                        ("aoa_ofs", cfg.aoa_ofs_rw_rad_per_rt_s)):
+        p = cfg.process
+        for name, q in (("wind_mean_ne", cfg.wind.mean_rw_m_s_per_rt_s), ("wind_ne", cfg.wind.mean_rw_m_s_per_rt_s),
+                        ("accel_bias_b", p.accel_bias_rw_m_s2_per_rt_s), ("yaw_bias", p.yaw_bias_rw_rad_per_rt_s),
+                        ("opt_rot", p.opt_rot_rw_rad_per_rt_s), ("baro_bias", p.baro_bias_rw_m_per_rt_s),
+                        ("terrain_h", p.terrain_rw_m_per_rt_s), ("tas_scale", p.tas_scale_rw_per_rt_s),
+                        ("att_delay", p.att_delay_rw_s_per_rt_s), ("side_force_ofs", p.side_force_ofs_rw_m_s2_per_rt_s),
+                        ("aoa_ofs", p.aoa_ofs_rw_rad_per_rt_s)):
             rw[getattr(S, name)] = q * q
         self._rw_var_rate = rw
 
@@ -273,7 +273,7 @@ class ProcessModel:
 
     def _noise_and_decay(self, dt_s: float) -> _NoiseTerms:
         """``Q`` without the turbulence's own term, the turbulence decay ``e = exp(-dt / tau)``, ``1 - e^2``, the
-        adaptation's decay ``a = exp(-dt / A)`` (``A = wind_turb_adapt_time_s``; 1 when not adapting),
+        adaptation's decay ``a = exp(-dt / A)`` (``A = wind.turb_adapt_time_s``; 1 when not adapting),
         ``c = (2 / tau) / (2 / tau - 1 / A) (a - e^2)``, the vertical wind's decay ``e_w = exp(-dt / tau_w)`` and
         ``1 - e_w^2`` over a prediction of ``dt_s`` (cached per length).
 
@@ -287,12 +287,12 @@ class ProcessModel:
             return hit
         cfg = self._cfg
         Q = np.diag(self._rw_var_rate * dt_s)
-        qpv = Q_continuous_white_noise(dim=2, dt=dt_s, spectral_density=cfg.accel_noise_m_s2_per_rt_hz**2)
+        qpv = Q_continuous_white_noise(dim=2, dt=dt_s, spectral_density=cfg.process.accel_noise_m_s2_per_rt_hz**2)
         Q.flat[_Q_PP], Q.flat[_Q_PV], Q.flat[_Q_VP], Q.flat[_Q_VV] = qpv[0, 0], qpv[0, 1], qpv[1, 0], qpv[1, 1]
-        decay = math.exp(-dt_s / cfg.wind_turb_corr_time_s)
-        q_mean = cfg.wind_rw_m_s_per_rt_s**2 * dt_s
+        decay = math.exp(-dt_s / cfg.wind.turb_corr_time_s)
+        q_mean = cfg.wind.mean_rw_m_s_per_rt_s**2 * dt_s
         Q.flat[_Q_WW] = Q.flat[_Q_WM] = Q.flat[_Q_MW] = q_mean
-        tau, adapt = cfg.wind_turb_corr_time_s, cfg.wind_turb_adapt_time_s
+        tau, adapt = cfg.wind.turb_corr_time_s, cfg.wind.turb_adapt_time_s
         e2 = math.exp(-2.0 * dt_s / tau)
         if adapt > 0.0:
             a = math.exp(-dt_s / adapt)
@@ -304,7 +304,7 @@ class ProcessModel:
         if len(self._q_cache) >= Q_CACHE_MAX:
             self._q_cache.clear()
         Q.flags.writeable = False
-        tau_w = cfg.wind_d_corr_time_s
+        tau_w = cfg.wind.vertical_corr_time_s
         hit = self._q_cache[key] = (Q, decay, -math.expm1(-2.0 * dt_s / tau), a, c, math.exp(-dt_s / tau_w),
                                     -math.expm1(-2.0 * dt_s / tau_w))
         return hit
@@ -313,18 +313,18 @@ class ProcessModel:
         """Move the turbulence variance in use over one prediction; returns the turbulence's noise over it.
 
         Turbulence intensity: E[d^2] of the estimated turbulence d = wind - mean (its square plus
-        ``wind_turb_adapt_var_weight`` of its variance from P), per axis, averaged over the adaptation time A
+        ``wind.turb_adapt_var_weight`` of its variance from P), per axis, averaged over the adaptation time A
         (exponentially), within [sigma_min, sigma_max]^2; the measurements behind the weight are in
         docs/ekf-tuning.md.  Over the prediction the variance moves as v(t) = d2 + (v0 - d2) exp(-t / A), and the
         noise is the exact integral of v(t) (2 / tau) exp(-2 (dt - t) / tau): d2 (1 - e^2) + (v0 - d2) c, so the
         result does not depend on the prediction rate."""
         v0 = self.turb_var
-        if self._cfg.wind_turb_adapt_time_s <= 0.0:
+        if self._cfg.wind.turb_adapt_time_s <= 0.0:
             return v0 * g
         wn, we, mn, me = x.take(_X_TURB).tolist()
         ann, anm, amm, aee, aem, bmm = P.take(_P_TURB).tolist()
         dn, de = wn - mn, we - me
-        d2 = 0.5 * (dn * dn + de * de + self._cfg.wind_turb_adapt_var_weight
+        d2 = 0.5 * (dn * dn + de * de + self._cfg.wind.turb_adapt_var_weight
                     * (ann - 2.0 * anm + amm + aee - 2.0 * aem + bmm))
         self.turb_var = min(self._turb_var_hi, max(self._turb_var_lo, d2 + (v0 - d2) * a))
         return d2 * g + (v0 - d2) * c
@@ -353,24 +353,24 @@ def initial_variances(cfg: EkfConfig) -> Vec:
     """Diagonal of the initial covariance (also what a covariance reset restores)."""
     c = cfg
     var = np.zeros(S.dim)
-    var[S.pos_ne] = c.init_pos_ne_sigma_m**2
-    var[S.pos_d] = c.init_pos_d_sigma_m**2
-    var[S.vel_ne] = c.init_vel_ne_sigma_m_s**2
-    var[S.vel_d] = c.init_vel_d_sigma_m_s**2
-    var[S.wind_ne] = c.init_wind_sigma_m_s**2
-    var[S.wind_mean_ne] = c.init_wind_sigma_m_s**2
-    var[S.wind_d] = (c.wind_d_sigma_ratio * c.wind_turb_sigma_m_s)**2     # the turbulence's stationary variance
-    var[S.accel_bias_b] = c.init_accel_bias_sigma_m_s2**2
-    var[S.yaw_bias] = c.init_yaw_bias_sigma_rad**2
-    var[S.opt_rot] = c.init_opt_rot_sigma_rad**2
-    var[S.baro_bias] = c.init_baro_bias_sigma_m**2
-    var[S.terrain_h] = c.init_terrain_sigma_m**2
-    var[S.tas_scale] = c.init_tas_scale_sigma**2
-    var[S.att_delay] = c.init_att_delay_sigma_s**2
-    var[S.side_force_ofs] = c.init_side_force_ofs_sigma_m_s2**2
-    var[S.aoa_ofs] = math.radians(c.init_aoa_ofs_sigma_deg)**2
-    var[S.base_pos_ne] = c.init_pos_ne_sigma_m**2
-    var[S.base_pos_d] = c.init_pos_d_sigma_m**2
+    var[S.pos_ne] = c.init.pos_ne_sigma_m**2
+    var[S.pos_d] = c.init.pos_d_sigma_m**2
+    var[S.vel_ne] = c.init.vel_ne_sigma_m_s**2
+    var[S.vel_d] = c.init.vel_d_sigma_m_s**2
+    var[S.wind_ne] = c.init.wind_sigma_m_s**2
+    var[S.wind_mean_ne] = c.init.wind_sigma_m_s**2
+    var[S.wind_d] = (c.wind.vertical_sigma_ratio * c.wind.turb_sigma_m_s)**2     # the turbulence's stationary variance
+    var[S.accel_bias_b] = c.init.accel_bias_sigma_m_s2**2
+    var[S.yaw_bias] = c.init.yaw_bias_sigma_rad**2
+    var[S.opt_rot] = c.init.opt_rot_sigma_rad**2
+    var[S.baro_bias] = c.init.baro_bias_sigma_m**2
+    var[S.terrain_h] = c.init.terrain_sigma_m**2
+    var[S.tas_scale] = c.init.tas_scale_sigma**2
+    var[S.att_delay] = c.init.att_delay_sigma_s**2
+    var[S.side_force_ofs] = c.init.side_force_ofs_sigma_m_s2**2
+    var[S.aoa_ofs] = math.radians(c.init.aoa_ofs_sigma_deg)**2
+    var[S.base_pos_ne] = c.init.pos_ne_sigma_m**2
+    var[S.base_pos_d] = c.init.pos_d_sigma_m**2
     return var
 
 
@@ -379,7 +379,7 @@ def initial_covariance(cfg: EkfConfig, init_var: Vec) -> Mat:
     ``cov(wind, mean) = var(mean)``) and the clone (a copy of the position)."""
     P0 = np.diag(init_var)
     P0[_I_WIND, _I_WMEAN] = P0[_I_WMEAN, _I_WIND] = init_var[_I_WMEAN]
-    P0[_I_WIND, _I_WIND] += cfg.wind_turb_sigma_m_s**2
+    P0[_I_WIND, _I_WIND] += cfg.wind.turb_sigma_m_s**2
     P0[np.ix_(_I_CLONE, _I_POS)] = P0[np.ix_(_I_POS, _I_POS)]
     P0[np.ix_(_I_POS, _I_CLONE)] = P0[np.ix_(_I_POS, _I_POS)]
     return P0

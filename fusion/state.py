@@ -44,8 +44,8 @@ Why this set
       total wind the aircraft flies in (steady + turbulence), since that is what the airspeed and ground velocity
       difference measures and what the drift and the ATA depend on.
     * ``wind_mean_ne``: the total wind is modelled as a slowly walking mean plus first-order Gauss-Markov turbulence
-      (``wind_ne - wind_mean_ne``, standard deviation ``wind_turb_sigma_m_s``, correlation time
-      ``wind_turb_corr_time_s``; :mod:`fusion.config`).  A pure random walk on the total wind (the earlier model)
+      (``wind_ne - wind_mean_ne``, standard deviation ``wind.turb_sigma_m_s``, correlation time
+      ``wind.turb_corr_time_s``; :mod:`fusion.config`).  A pure random walk on the total wind (the earlier model)
       lets the wind follow a pitot scale error, which turns with the heading, so the scale was never observable in
       turbulence (in the Monte Carlo campaign the estimated scale walked +2 % in 300 s whatever the true one);
       turbulence that returns to a mean cannot follow the heading for long, so loops of turns show the scale.
@@ -56,8 +56,8 @@ Why this set
       campaign's turbulence (vertical gusts of 0.6-0.9 m/s rms) the sideslip predicted without it was off by
       0.55-0.95 deg rms (0.2-0.33 m/s of cross-heading wind), mostly at the 5-30 s periods of the turns, where the
       side-force sideslip itself is within 0.1 deg.  First-order Gauss-Markov with no mean: standard deviation
-      ``wind_d_sigma_ratio`` times the adapted horizontal turbulence sigma (Dryden below 1000 ft: 0.6-1.0),
-      correlation time ``wind_d_corr_time_s`` (Dryden ``L_w / V`` = height / airspeed).  The lift-model angle of
+      ``wind.vertical_sigma_ratio`` times the adapted horizontal turbulence sigma (Dryden below 1000 ft: 0.6-1.0),
+      correlation time ``wind.vertical_corr_time_s`` (Dryden ``L_w / V`` = height / airspeed).  The lift-model angle of
       attack (:class:`fusion.measurements.LiftAngleOfAttack`) observes it at any bank (it fixes the body-frame air
       velocity's third component); without it, only in banked flight, where the sideslip's innovation is shared
       between it and the horizontal wind by their covariances (correlation with the truth in banks 0.61 without,

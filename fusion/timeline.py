@@ -79,11 +79,11 @@ class Timeline:
         self._heap: list[tuple[int, int, int, str, Any]] = []
         self._seq = itertools.count()
         self._n_meas_buffered = 0
-        self._buffer_max = cfg.buffer_max_events
+        self._buffer_max = cfg.timing.buffer_max_events
         self._buffer_full_warned = False
-        self._delay_us = round(cfg.fusion_delay_s * US_PER_S)
-        self._period_us = round(cfg.predict_period_s * US_PER_S)
-        self._att_age_us = round(cfg.att_max_age_s * US_PER_S)
+        self._delay_us = round(cfg.timing.fusion_delay_s * US_PER_S)
+        self._period_us = round(cfg.timing.predict_period_s * US_PER_S)
+        self._att_age_us = round(cfg.timing.att_max_age_s * US_PER_S)
 
     @property
     def imu_waiting(self) -> bool:

@@ -15,7 +15,6 @@ values here are the "true" errors (STYLE section 8).
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections import deque
 from collections.abc import Callable, Sequence
@@ -203,25 +202,26 @@ def _step(fl: Flight, base: dict[str, Any], k: int, rng: np.random.Generator, sm
                     focal_px=fl.cfg.focal_px, rel_rot_rad=rel, quality=q, valid=True, new_cycle=n_step == 0)
 
 
-def filter_config(truth: TruthConfig | None = None, **overrides: Any) -> EkfConfig:
+def filter_config(truth: TruthConfig | None = None, **overrides: dict[str, Any]) -> EkfConfig:
     """The default EKF configuration with what differs in this truth from the simulator the defaults are sized
     for: the optical error model (white matcher noise ``match_noise_px`` and white relative-attitude error
     ``att_rel_noise_deg``, no gyro-bias drift), a smooth wind without turbulence (slow wind random walk), a
     small kinematic sideslip (no side-force aerodynamics: the IMU's lateral specific force carries no sideslip, so
-    the zero-sideslip pseudo-measurement, ``sideslip_side_force_coef_per_rad`` 0), no lift aerodynamics either (the
+    the zero-sideslip pseudo-measurement, ``airframe.side_force_coef_per_rad`` 0), no lift aerodynamics either (the
     normal specific force is the kinematic one at a constant angle of attack, so no lift-model angle of attack,
-    ``aoa_fusion`` off), white GNSS errors and a 1 % pitot scale error to learn; no fusion delay (samples are fed
-    in time order); plus ``overrides``."""
+    ``aoa.enabled`` off), white GNSS errors and a 1 % pitot scale error to learn; no fusion delay (samples are fed
+    in time order); plus ``overrides`` (per section: ``airspeed={"scale_update_fraction": 1.0}``)."""
     t = truth or TruthConfig()
-    base = dataclasses.replace(
-        EkfConfig(), fusion_delay_s=0.0, optical_match_sigma_px=t.match_noise_px, optical_psr_ref=t.psr,
-        optical_att_rel_sigma_deg=t.att_rel_noise_deg, optical_att_rel_sigma_per_rad=0.0,
-        optical_att_rel_sigma_deg_per_s=0.0, wind_rw_m_s_per_rt_s=0.05, sideslip_sigma_deg=5.0,
-        sideslip_side_force_coef_per_rad=0.0, aoa_fusion=False,
-        gnss_pos_corr_time_s=0.0, init_tas_scale_sigma=max(abs(t.tas_scale_err), 1e-3),
-        wind_turb_sigma_m_s=0.05, wind_turb_sigma_min_m_s=0.05, wind_turb_adapt_time_s=0.0,
-        tas_scale_update_fraction=0.03)
-    return dataclasses.replace(base, **overrides)
+    base = EkfConfig().replace(
+        timing={"fusion_delay_s": 0.0},
+        optical={"match_sigma_px": t.match_noise_px, "psr_ref": t.psr, "att_rel_sigma_deg": t.att_rel_noise_deg,
+                 "att_rel_sigma_per_rad": 0.0, "att_rel_sigma_deg_per_s": 0.0},
+        wind={"mean_rw_m_s_per_rt_s": 0.05, "turb_sigma_m_s": 0.05, "turb_sigma_min_m_s": 0.05,
+              "turb_adapt_time_s": 0.0},
+        sideslip={"sigma_deg": 5.0}, airframe={"side_force_coef_per_rad": 0.0}, aoa={"enabled": False},
+        gnss={"pos_corr_time_s": 0.0}, init={"tas_scale_sigma": max(abs(t.tas_scale_err), 1e-3)},
+        airspeed={"scale_update_fraction": 0.03})
+    return base.replace(**overrides)
 
 
 # --------------------------------------------------------------------------------------------------------------

@@ -15,7 +15,7 @@ from fusion import ekf as ekf_mod
 from fusion.aid import SOURCES, AidSource
 from fusion.aid.base import ModelBase
 from fusion.bench import bench_ekf_step
-from fusion.config import EkfConfig, ekf_config_from_raw
+from fusion.config import EKF_SECTIONS, LEGACY_KEYS, EkfConfig, ekf_config_from_raw
 from fusion.core import Linearised
 from fusion.ekf import AID_SOURCES, ImuIncrement, NavEkf, R_nb_321, propagate
 from fusion.measurements import (
@@ -87,42 +87,80 @@ def test_ekf_config_from_file_defaults_and_errors():
     raw = load_gsoe_config()[1]
     assert ekf_config_from_raw(raw) == EkfConfig()          # the [ekf] table documents the dataclass defaults
     assert ekf_config_from_raw(raw["ekf"]) == EkfConfig()
-    with pytest.raises(ConfigError, match="ekf.gate_optical_nis"):
-        ekf_config_from_raw({"ekf": {"gate_optical_nis": -1.0}})
-    with pytest.raises(ConfigError, match="ekf.gate_optcal_nis: unknown key"):
-        ekf_config_from_raw({"gate_optcal_nis": 3.0})
-    with pytest.raises(ConfigError, match="ekf.fusion_delay_s"):
-        ekf_config_from_raw({"ekf": {"fusion_delay_s": math.inf}})
-    # the side-force coefficient opposes the sideslip (negative) or is 0 (model off); the airframe must be physical
-    with pytest.raises(ConfigError, match="ekf.sideslip_side_force_coef_per_rad"):
-        ekf_config_from_raw({"ekf": {"sideslip_side_force_coef_per_rad": 0.35}})
-    with pytest.raises(ConfigError, match="ekf.airframe_mass_kg"):
-        ekf_config_from_raw({"ekf": {"airframe_mass_kg": 0.0}})
-    with pytest.raises(ConfigError, match="ekf.air_density_kg_m3"):
-        ekf_config_from_raw({"ekf": {"air_density_kg_m3": math.nan}})
-    with pytest.raises(ConfigError, match="ekf.init_side_force_ofs_sigma_m_s2"):
-        ekf_config_from_raw({"ekf": {"init_side_force_ofs_sigma_m_s2": 0.0}})
-    with pytest.raises(ConfigError, match="ekf.side_force_ofs_rw_m_s2_per_rt_s"):
-        ekf_config_from_raw({"ekf": {"side_force_ofs_rw_m_s2_per_rt_s": -1e-3}})
-    with pytest.raises(ConfigError, match="ekf.wind_d_sigma_ratio"):
-        ekf_config_from_raw({"ekf": {"wind_d_sigma_ratio": -0.1}})
-    with pytest.raises(ConfigError, match="ekf.wind_d_corr_time_s"):
-        ekf_config_from_raw({"ekf": {"wind_d_corr_time_s": 0.0}})
-    with pytest.raises(ConfigError, match="ekf.sideslip_turb_noise_factor"):
-        ekf_config_from_raw({"ekf": {"sideslip_turb_noise_factor": -1.0}})
-    with pytest.raises(ConfigError, match="ekf.wind_turb_adapt_var_weight"):
-        ekf_config_from_raw({"ekf": {"wind_turb_adapt_var_weight": 1.5}})
-    with pytest.raises(ConfigError, match="ekf.aoa_sigma_deg"):
-        ekf_config_from_raw({"ekf": {"aoa_sigma_deg": 0.0}})
-    with pytest.raises(ConfigError, match="ekf.aoa_lift_slope_per_rad"):
-        ekf_config_from_raw({"ekf": {"aoa_lift_slope_per_rad": -4.5}})
-    with pytest.raises(ConfigError, match="ekf.aoa_lift_coef_zero"):
-        ekf_config_from_raw({"ekf": {"aoa_lift_coef_zero": 5.0}})
-    with pytest.raises(ConfigError, match="ekf.init_aoa_ofs_sigma_deg"):
-        ekf_config_from_raw({"ekf": {"init_aoa_ofs_sigma_deg": 0.0}})
-    with pytest.raises(ConfigError, match="ekf.aoa_fusion"):
-        ekf_config_from_raw({"ekf": {"wind_d_sigma_ratio": 0.0}})
-    assert ekf_config_from_raw({"ekf": {"wind_d_sigma_ratio": 0.0, "aoa_fusion": False}}).wind_d_sigma_ratio == 0.0
+    nested = {name: dataclasses.asdict(getattr(EkfConfig(), name)) for name in EKF_SECTIONS}
+    assert ekf_config_from_raw({"ekf": nested}) == EkfConfig()
+    bad = [({"gates": {"optical_nis": -1.0}}, "ekf.gates.optical_nis"),
+           ({"timing": {"fusion_delay_s": math.inf}}, "ekf.timing.fusion_delay_s"),
+           # the side-force coefficient opposes the sideslip (negative) or is 0 (model off); a physical airframe
+           ({"airframe": {"side_force_coef_per_rad": 0.35}}, "ekf.airframe.side_force_coef_per_rad"),
+           ({"airframe": {"mass_kg": 0.0}}, "ekf.airframe.mass_kg"),
+           ({"airframe": {"air_density_kg_m3": math.nan}}, "ekf.airframe.air_density_kg_m3"),
+           ({"airframe": {"lift_slope_per_rad": -4.5}}, "ekf.airframe.lift_slope_per_rad"),
+           ({"airframe": {"lift_coef_zero": 5.0}}, "ekf.airframe.lift_coef_zero"),
+           ({"init": {"side_force_ofs_sigma_m_s2": 0.0}}, "ekf.init.side_force_ofs_sigma_m_s2"),
+           ({"init": {"aoa_ofs_sigma_deg": 0.0}}, "ekf.init.aoa_ofs_sigma_deg"),
+           ({"process": {"side_force_ofs_rw_m_s2_per_rt_s": -1e-3}}, "ekf.process.side_force_ofs_rw_m_s2_per_rt_s"),
+           ({"wind": {"vertical_sigma_ratio": -0.1}}, "ekf.wind.vertical_sigma_ratio"),
+           ({"wind": {"vertical_corr_time_s": 0.0}}, "ekf.wind.vertical_corr_time_s"),
+           ({"wind": {"turb_adapt_var_weight": 1.5}}, "ekf.wind.turb_adapt_var_weight"),
+           ({"wind": {"turb_sigma_m_s": 6.0}}, "ekf.wind.turb_sigma_m_s: must lie in"),
+           ({"sideslip": {"turb_noise_factor": -1.0}}, "ekf.sideslip.turb_noise_factor"),
+           ({"aoa": {"sigma_deg": 0.0}}, "ekf.aoa.sigma_deg"),
+           ({"timing": {"buffer_max_events": 20.5}}, "ekf.timing.buffer_max_events: must be an integer"),
+           ({"airspeed": {"sigma": 1.0}}, "ekf.airspeed.sigma: unknown key"),
+           ({"airspeed": 1.0}, "ekf.airspeed: must be a table"),
+           ({"profiles": 1.0}, "ekf.profiles: must be a table"),
+           ({"wind": {"vertical_sigma_ratio": 0.0}}, "ekf.aoa.enabled"),   # the angle of attack needs the vertical wind
+           ({"gate_optcal_nis": 3.0}, "ekf.gate_optcal_nis: unknown key")]
+    for table, message in bad:
+        with pytest.raises(ConfigError, match=message.replace(".", r"\.").replace("(", r"\(")):
+            ekf_config_from_raw({"ekf": table})
+    assert ekf_config_from_raw({"ekf": {"wind": {"vertical_sigma_ratio": 0.0}, "aoa": {"enabled": False}}}).wind \
+        == dataclasses.replace(EkfConfig().wind, vertical_sigma_ratio=0.0)
+    # the ranges hold however a section is made
+    with pytest.raises(ConfigError, match="optical_nis"):
+        dataclasses.replace(EkfConfig().gates, optical_nis=0.0)
+    with pytest.raises(ConfigError, match="mass_kg"):
+        EkfConfig().replace(airframe={"mass_kg": -1.0})
+
+
+def test_ekf_config_takes_the_flat_keys_of_before_the_sections():
+    """Today's flat ``[ekf]`` keys still build the same config (one table maps them to the sections); an error on
+    one names it as given; flat names read back."""
+    assert len(LEGACY_KEYS) == sum(len(dataclasses.fields(getattr(EkfConfig(), s))) for s in EKF_SECTIONS)
+    assert len(set(LEGACY_KEYS.values())) == len(LEGACY_KEYS)
+    cfg = ekf_config_from_raw({"ekf": {"tas_sigma_m_s": 0.7, "gate_optical_nis": 9.0, "aoa_fusion": False,
+                                       "wind_d_sigma_ratio": 0.0, "baro": {"sigma_m": 2.0}}})
+    assert cfg == EkfConfig().replace(airspeed={"sigma_m_s": 0.7}, gates={"optical_nis": 9.0},
+                                      aoa={"enabled": False}, wind={"vertical_sigma_ratio": 0.0}, baro={"sigma_m": 2.0})
+    assert cfg.tas_sigma_m_s == 0.7 and cfg.baro_sigma_m == 2.0
+    assert cfg.sideslip_accel_gain_m == cfg.airframe.sideslip_accel_gain_m and cfg.aoa_sigma_rad == cfg.aoa.sigma_rad
+    with pytest.raises(AttributeError):
+        _ = cfg.no_such_key
+    for key, value in (("gate_optical_nis", -1.0), ("wind_rw_m_s_per_rt_s", "fast"), ("aoa_fusion", 3),
+                       ("sideslip_side_force_coef_per_rad", 0.35), ("init_side_force_ofs_sigma_m_s2", 0.0)):
+        with pytest.raises(ConfigError) as err:
+            ekf_config_from_raw({"ekf": {key: value}})
+        assert err.value.field_path == f"ekf.{key}" and str(err.value).endswith(f"(ekf.{'.'.join(LEGACY_KEYS[key])})")
+    # a table merged from a sectioned [ekf] and flat keys (nav/replay.py's profile today): the flat keys win
+    mixed = {"airspeed": {"sigma_m_s": 0.8, "min_m_s": 7.0}, "tas_sigma_m_s": 0.7}
+    assert ekf_config_from_raw({"ekf": mixed}).airspeed == EkfConfig().replace(
+        airspeed={"sigma_m_s": 0.7, "min_m_s": 7.0}).airspeed
+
+
+def test_ekf_config_profiles_apply_on_top_of_the_table():
+    raw = {"ekf": {"airspeed": {"sigma_m_s": 0.6, "min_m_s": 7.0},
+                   "profiles": {"quiet": {"airspeed": {"sigma_m_s": 0.3}, "aoa_fusion": False}}}}
+    assert ekf_config_from_raw(raw) == EkfConfig().replace(airspeed={"sigma_m_s": 0.6, "min_m_s": 7.0})
+    quiet = ekf_config_from_raw(raw, profile="quiet")
+    assert quiet == EkfConfig().replace(airspeed={"sigma_m_s": 0.3, "min_m_s": 7.0}, aoa={"enabled": False})
+    assert ekf_config_from_raw(raw, "quiet", overrides={"airspeed": {"min_m_s": 5.0}}).airspeed.min_m_s == 5.0
+    with pytest.raises(ConfigError, match=r"ekf\.profiles\.loud: no such profile \(known: quiet\)"):
+        ekf_config_from_raw(raw, profile="loud")
+    with pytest.raises(ConfigError, match=r"ekf\.profiles\.bad\.airspeed\.sigma_m_s"):
+        ekf_config_from_raw({"ekf": {"profiles": {"bad": {"airspeed": {"sigma_m_s": -1.0}}}}}, "bad")
+    with pytest.raises(ConfigError, match=r"ekf\.profiles\.bad\.nonsense: unknown key"):
+        ekf_config_from_raw({"ekf": {"profiles": {"bad": {"nonsense": 1.0}}}}, "bad")
 
 
 def test_fast_rotation_matches_gsoe_rotation():
@@ -210,7 +248,7 @@ def test_wind_is_reset_from_the_first_airspeed_sample_when_not_given():
     assert st.reason == ekf_mod.REASON_WIND_RESET and not st.rejected
     est = ekf.estimate()
     np.testing.assert_allclose(est.wind_ne_m_s, [0.0, -18.0], atol=1e-6)
-    expect = math.sqrt(p_vn + 20.0**2 * (p_yaw + CFG0.sideslip_sigma_rad**2))
+    expect = math.sqrt(p_vn + 20.0**2 * (p_yaw + CFG0.sideslip.sigma_rad**2))
     assert est.wind_ne_sigma_m_s[0] == pytest.approx(expect, rel=1e-6)
     assert est.tas_scale == 0.0
     assert est.side_force_ofs_m_s2 == 0.0
@@ -355,8 +393,8 @@ def test_covariance_reset_when_innovation_variance_below_observation_variance():
     st = ekf.status()["baro"]
     assert st.rejected and st.reason == ekf_mod.REASON_COV_RESET
     Pn = ekf.P
-    assert Pn[i, i] == pytest.approx(CFG0.init_pos_d_sigma_m**2)
-    assert Pn[S.baro_bias.start, S.baro_bias.start] == pytest.approx(CFG0.init_baro_bias_sigma_m**2)
+    assert Pn[i, i] == pytest.approx(CFG0.init.pos_d_sigma_m**2)
+    assert Pn[S.baro_bias.start, S.baro_bias.start] == pytest.approx(CFG0.init.baro_bias_sigma_m**2)
     np.testing.assert_array_equal(Pn, Pn.T)
     assert np.linalg.eigvalsh(Pn).min() > -1e-9
     ekf.predict(ImuSample(105_000, np.zeros(3), G_DOWN_SPECIFIC_FORCE.copy()), AttitudeSample(105_000, 0, 0, 0))
@@ -369,10 +407,10 @@ def test_side_force_sideslip_measures_the_lateral_specific_force():
     specific force (less the bias state); with C_Ybeta 0 it is the zero-sideslip pseudo-measurement.  Two filters fed
     the same samples differ in their sideslip innovation by exactly that reading (written out here from the airframe
     numbers, not from the config's property)."""
-    on = dataclasses.replace(CFG0, sideslip_side_force_coef_per_rad=-0.5, airframe_mass_kg=4.0,
-                             airframe_wing_area_m2=0.5, air_density_kg_m3=1.2, sideslip_accel_tau_s=0.05)
-    off = dataclasses.replace(on, sideslip_side_force_coef_per_rad=0.0)
-    assert off.sideslip_accel_gain_m == 0.0
+    on = CFG0.replace(airframe={"side_force_coef_per_rad": -0.5, "mass_kg": 4.0, "wing_area_m2": 0.5,
+                                "air_density_kg_m3": 1.2, "accel_tau_s": 0.05})
+    off = on.replace(airframe={"side_force_coef_per_rad": 0.0})
+    assert off.airframe.sideslip_accel_gain_m == 0.0
     f_y, tas = 0.8, 20.0
     innov = {}
     for name, cfg in (("on", on), ("off", off)):
@@ -401,10 +439,10 @@ def test_lift_angle_of_attack_measures_the_normal_specific_force():
     innovation is the lift angle written out from the airframe numbers less the 3 deg of pitch (the airspeed and
     sideslip updates before it have zero innovations, so the state is the initial one).  With the measurement off
     the ``aoa`` source never fuses."""
-    on = dataclasses.replace(CFG0, aoa_fusion=True, aoa_lift_slope_per_rad=5.0, aoa_lift_coef_zero=0.2,
-                             airframe_mass_kg=4.0, airframe_wing_area_m2=0.5, air_density_kg_m3=1.2,
-                             sideslip_accel_tau_s=0.05)
-    off = dataclasses.replace(on, aoa_fusion=False)
+    on = CFG0.replace(aoa={"enabled": True},
+                      airframe={"lift_slope_per_rad": 5.0, "lift_coef_zero": 0.2, "mass_kg": 4.0, "wing_area_m2": 0.5,
+                                "air_density_kg_m3": 1.2, "accel_tau_s": 0.05})
+    off = on.replace(aoa={"enabled": False})
     theta, tas, g = math.radians(3.0), 20.0, 9.80665
     f_b = np.array([g * math.sin(theta), 0.0, -g * math.cos(theta)])     # level, unaccelerated
     status = {}
@@ -422,21 +460,22 @@ def test_lift_angle_of_attack_measures_the_normal_specific_force():
     assert abs(alpha_lift - theta) > math.radians(0.5)                   # a reading, not noise
     assert not status["off"].fused and status["off"].n_fused == 0
     assert LiftAngleOfAttack.variance(on, 2.0, 20.0) == pytest.approx(
-        math.radians(on.aoa_sigma_deg) ** 2 + (on.aoa_turb_noise_factor * on.wind_d_sigma_ratio) ** 2 * 2.0 / 400.0)
+        math.radians(on.aoa.sigma_deg) ** 2
+        + (on.aoa.turb_noise_factor * on.wind.vertical_sigma_ratio) ** 2 * 2.0 / 400.0)
 
 
 def test_lift_angle_of_attack_beyond_the_linear_lift_curve_is_not_fused():
     """Steady level flight pitched up ``alpha`` at the airspeed whose lift at that angle carries the weight (the
     accelerometer reads ``-g cos(alpha)`` along body z): at 8 deg the reading is fused (its innovation is about 0),
-    at 12 deg, beyond ``aoa_max_deg`` = 10 (a stall or a hard pull, where the lift curve is no longer linear), it is
+    at 12 deg, beyond ``aoa.max_deg`` = 10 (a stall or a hard pull, where the lift curve is no longer linear), it is
     not, and the status says why."""
-    cfg = dataclasses.replace(CFG0, aoa_fusion=True, aoa_max_deg=10.0)
+    cfg = CFG0.replace(aoa={"enabled": True, "max_deg": 10.0})
     g = 9.80665
     for alpha_deg, fused in ((12.0, False), (8.0, True)):
         a = math.radians(alpha_deg)
-        c_l = cfg.aoa_lift_coef_zero + cfg.aoa_lift_slope_per_rad * a
-        tas = math.sqrt(2.0 * cfg.airframe_mass_kg * g * math.cos(a)
-                        / (cfg.air_density_kg_m3 * cfg.airframe_wing_area_m2 * c_l))
+        c_l = cfg.airframe.lift_coef_zero + cfg.airframe.lift_slope_per_rad * a
+        tas = math.sqrt(2.0 * cfg.airframe.mass_kg * g * math.cos(a)
+                        / (cfg.airframe.air_density_kg_m3 * cfg.airframe.wing_area_m2 * c_l))
         f_b = np.array([g * math.sin(a), 0.0, -g * math.cos(a)])
         ekf = NavEkf(cfg, t_us=0, pos_ned_m=[0.0, 0.0, -100.0], vel_ned_m_s=[tas, 0.0, 0.0], wind_ne_m_s=(0.0, 0.0))
         for k in range(1, 201):
@@ -454,8 +493,8 @@ def test_sideslip_noise_grows_with_the_turbulence_in_use():
     """The sideslip's variance is ``sigma_beta^2 + (factor * sigma_turb / V)^2``: two filters fed the same samples,
     one with the turbulence term, differ in the sideslip's innovation variance by exactly that term (the covariance
     before the sideslip update is the same in both: the airspeed update before it does not depend on the factor)."""
-    with_term = dataclasses.replace(CFG0, sideslip_turb_noise_factor=2.0, wind_turb_sigma_m_s=1.5)
-    without = dataclasses.replace(with_term, sideslip_turb_noise_factor=0.0)
+    with_term = CFG0.replace(sideslip={"turb_noise_factor": 2.0}, wind={"turb_sigma_m_s": 1.5})
+    without = with_term.replace(sideslip={"turb_noise_factor": 0.0})
     tas = 20.0
     var = {}
     for name, cfg in (("with", with_term), ("without", without)):
@@ -471,30 +510,30 @@ def test_sideslip_noise_grows_with_the_turbulence_in_use():
     assert sigma_turb == pytest.approx(var["without"][1], rel=1e-12)
     assert var["with"][0] - var["without"][0] == pytest.approx((2.0 * sigma_turb / v_air) ** 2, rel=1e-9)
     assert SyntheticSideslip.variance(with_term, sigma_turb**2, v_air) == pytest.approx(
-        math.radians(with_term.sideslip_sigma_deg) ** 2 + (2.0 * sigma_turb / v_air) ** 2, rel=1e-12)
+        math.radians(with_term.sideslip.sigma_deg) ** 2 + (2.0 * sigma_turb / v_air) ** 2, rel=1e-12)
 
 
 def test_optical_matcher_sigma_is_at_least_the_ssd_surface_precision():
-    """The matcher's sigma is the PSR model ``optical_match_sigma_px / q`` or ``optical_ssd_sigma_factor`` times the
+    """The matcher's sigma is the PSR model ``optical.match_sigma_px / q`` or ``optical.ssd_sigma_factor`` times the
     match's own SSD precision, whichever is larger; nan (no precision) and factor 0 leave the PSR model alone, and
     the innovation variance the filter uses grows by exactly the difference.  (The default factor is 0: off.)"""
-    assert EkfConfig().optical_ssd_sigma_factor == 0.0
-    on = dataclasses.replace(CFG0, optical_ssd_sigma_factor=1.0)
-    att = 350.0 * CFG0.optical_att_rel_sigma_rad  # not the subject: the same in every case below
+    assert EkfConfig().optical.ssd_sigma_factor == 0.0
+    on = CFG0.replace(optical={"ssd_sigma_factor": 1.0})
+    att = 350.0 * CFG0.optical.att_rel_sigma_rad  # not the subject: the same in every case below
 
     def sigma(cfg: EkfConfig, psr: float, ssd_sigma: float) -> tuple[float, float]:
         q = MatchQuality(psr=psr, texture_std=30.0, ssd_per_px=5.0, valid=True, match_sigma_px=ssd_sigma)
         return OpticalDisplacement.noise_sigma_px(_step(100_000, 0, 1, 1, 3.0, 4.0, quality=q, rel_rot_rad=0.0), cfg)
 
-    psr_model = CFG0.optical_match_sigma_px                  # psr 15 >= optical_psr_ref: quality 1
+    psr_model = CFG0.optical.match_sigma_px                  # psr 15 >= optical_psr_ref: quality 1
     assert sigma(on, 15.0, 0.5)[0] == pytest.approx(0.5)
     assert sigma(on, 15.0, 0.01)[0] == pytest.approx(psr_model)          # sharp ground: the PSR model stands
     assert sigma(on, 15.0, math.nan)[0] == pytest.approx(psr_model)
-    low_psr = psr_model / max(CFG0.optical_quality_floor, min(1.0, 2.0 / CFG0.optical_psr_ref))
+    low_psr = psr_model / max(CFG0.optical.quality_floor, min(1.0, 2.0 / CFG0.optical.psr_ref))
     assert low_psr > 0.15 and sigma(on, 2.0, 0.15)[0] == pytest.approx(low_psr)   # a poor PSR's sigma is larger
     off = CFG0
     assert sigma(off, 15.0, 0.5)[0] == pytest.approx(psr_model)
-    twice = dataclasses.replace(on, optical_ssd_sigma_factor=2.0)
+    twice = on.replace(optical={"ssd_sigma_factor": 2.0})
     assert sigma(twice, 15.0, 0.5)[0] == pytest.approx(1.0)
     assert sigma(on, 15.0, 0.5)[1] == pytest.approx(att, rel=1e-9)
     # in the filter: the same cycle's second step fused with a smooth-ground and a sharp-ground quality
@@ -512,10 +551,10 @@ def test_optical_matcher_sigma_is_at_least_the_ssd_surface_precision():
         var[name] = st.innovation_var[0]
     m_s, a_s = OpticalDisplacement.noise_sigma_px(
         _step(0, 0, 7, 1, 0.0, 1.0, quality=MatchQuality(15.0, 30.0, 5.0, True, 0.6)), on)
-    assert var["smooth"] - var["sharp"] == pytest.approx(0.6**2 - CFG0.optical_match_sigma_px**2, rel=1e-6)
+    assert var["smooth"] - var["sharp"] == pytest.approx(0.6**2 - CFG0.optical.match_sigma_px**2, rel=1e-6)
     assert m_s == pytest.approx(0.6)
-    with pytest.raises(ConfigError, match="ekf.optical_ssd_sigma_factor"):
-        ekf_config_from_raw({"ekf": {"optical_ssd_sigma_factor": -1.0}})
+    with pytest.raises(ConfigError, match="ekf.optical.ssd_sigma_factor"):
+        ekf_config_from_raw({"ekf": {"optical": {"ssd_sigma_factor": -1.0}}})
 
 
 def test_joseph_update_keeps_P_symmetric_positive_and_matches_textbook_kalman():
@@ -560,11 +599,11 @@ def test_delayed_horizon_fuses_late_camera_and_airspeed_at_their_own_time():
     """Camera steps delivered 70 ms and airspeed 30 ms after their stamps (behind newer IMU samples), with a 0.1 s
     fusion delay, give the same filter as the same samples fed in time order."""
     fl = _short_flight()
-    ordered = run_ekf(fl, dataclasses.replace(CFG0, fusion_delay_s=0.1))
+    ordered = run_ekf(fl, CFG0.replace(timing={"fusion_delay_s": 0.1}))
     late = {"optical": 70_000, "tas": 30_000}
     arrivals = sorted(fl.events, key=lambda e: (e[0] + late.get(e[2], 0), e[1]))
     fl_late = dataclasses.replace(fl, events=arrivals)
-    delayed = run_ekf(fl_late, dataclasses.replace(CFG0, fusion_delay_s=0.1))
+    delayed = run_ekf(fl_late, CFG0.replace(timing={"fusion_delay_s": 0.1}))
     assert delayed.statuses[-1]["optical"].n_fused == ordered.statuses[-1]["optical"].n_fused > 400
     assert delayed.statuses[-1]["optical"].n_rejected == ordered.statuses[-1]["optical"].n_rejected <= 3
     np.testing.assert_allclose(delayed.ekf.x, ordered.ekf.x, atol=1e-6)
@@ -597,9 +636,9 @@ def test_missed_base_snapshot_anchors_the_cycle_on_its_first_step():
 def test_correlated_gnss_position_error_is_not_averaged_as_white():
     """Fixes 0.2 s apart with a 30 s error correlation time: the second fix is fused with its variance times
     2 tau / dt = 300 (the information rate of a Gauss-Markov error), the first one with the plain variance."""
-    cfg = dataclasses.replace(CFG0, gnss_pos_corr_time_s=30.0)
+    cfg = CFG0.replace(gnss={"pos_corr_time_s": 30.0})
     ekf = _flying_ekf(cfg)
-    r = cfg.gnss_pos_ne_sigma_m**2
+    r = cfg.gnss.pos_ne_sigma_m**2
     p_before = ekf.P[0, 0]
     ekf.fuse_gnss(100_000, [2.0, 0.0, -100.0], None)
     s1 = ekf.status()["gnss_pos"]
@@ -628,7 +667,7 @@ def test_gnss_position_reset_after_continuous_rejection():
         if ekf.status()["gnss_pos"].reason == ekf_mod.REASON_RESET_TO_MEAS:
             break
     assert ekf.status()["gnss_pos"].reason == ekf_mod.REASON_RESET_TO_MEAS
-    assert (tk - t) / 1e6 >= CFG0.gnss_reset_after_s
+    assert (tk - t) / 1e6 >= CFG0.gnss.reset_after_s
     assert ekf.estimate().pos_ne_m[0] == pytest.approx(500.0 + 20.0 * tk / 1e6, abs=1e-6)
 
 
@@ -663,7 +702,7 @@ def test_accumulated_imu_prediction_equals_per_sample_prediction():
     samples = _turn_samples(200, 5000, rate, bank, f_b)
     runs = {}
     for period in (0.0, 1.0):
-        cfg = dataclasses.replace(CFG0, predict_period_s=period)
+        cfg = CFG0.replace(timing={"predict_period_s": period})
         ekf = NavEkf(cfg, t_us=0, pos_ned_m=[0.0, 0.0, -100.0], vel_ned_m_s=[v, 0.0, 0.0], wind_ne_m_s=[0.0, 0.0])
         for imu, att in samples:
             ekf.predict(imu, att)
@@ -674,7 +713,7 @@ def test_accumulated_imu_prediction_equals_per_sample_prediction():
     np.testing.assert_allclose(accumulated.x, per_sample.x, rtol=0, atol=1e-9)
     # the accelerometer-bias random walk injected within the interval reaches velocity and position only in the
     # per-sample chain: q^2 T^2 / 2 = (1e-3 m/s^2/sqrt(s))^2 (1 s)^2 / 2 = 5e-7 (m/s^2 m/s)
-    q2 = CFG0.accel_bias_rw_m_s2_per_rt_s**2
+    q2 = CFG0.process.accel_bias_rw_m_s2_per_rt_s**2
     np.testing.assert_allclose(accumulated.P, per_sample.P, rtol=1e-9, atol=2.0 * q2)
     # analytic circle: heading psi(t) = rate t, position (v/rate) (sin psi, 1 - cos psi)
     psi = rate * 1.0
@@ -713,8 +752,9 @@ def test_partial_update_is_the_joseph_form_of_the_scaled_gain():
     """An airspeed update with the partial-update (Schmidt) airspeed scale against the textbook Joseph form
     (I - K H) P (I - K H)' + K R K' with K = D P H' S^-1 (an independent formula), after turns have correlated the
     scale with the wind."""
-    cfg = dataclasses.replace(CFG0, sideslip_fusion=False, aoa_fusion=False, tas_scale_update_fraction=0.2,
-                              tas_scale_calm_fraction=0.2)
+    cfg = CFG0.replace(sideslip={"enabled": False},
+                       aoa={"enabled": False},
+                       airspeed={"scale_update_fraction": 0.2, "scale_calm_fraction": 0.2})
     ekf = NavEkf(cfg, t_us=0, pos_ned_m=[0.0, 0.0, -100.0], vel_ned_m_s=[20.0, 0.0, 0.0], wind_ne_m_s=[1.0, -2.0])
     samples = _turn_samples(400, 5000, math.radians(15.0), 0.5, np.array([0.0, 0.0, -9.80665 / math.cos(0.5)]))
     for k, (imu, att) in enumerate(samples):
@@ -727,7 +767,7 @@ def test_partial_update_is_the_joseph_form_of_the_scaled_gain():
     z_hat, h = TrueAirspeed.from_config(cfg, ekf.wind_turb_sigma_m_s**2).linearise(x)[:2]
     H = h[None, :]
     # the airspeed variance: the pitot's plus the turbulence's share at the sigma in use (written out here)
-    Rm = np.array([[cfg.tas_sigma_m_s**2 + (cfg.tas_turb_noise_factor * ekf.wind_turb_sigma_m_s) ** 2]])
+    Rm = np.array([[cfg.airspeed.sigma_m_s**2 + (cfg.airspeed.turb_noise_factor * ekf.wind_turb_sigma_m_s) ** 2]])
     K = np.diag(np.where(np.arange(S.dim) == S.tas_scale.start, 0.2, 1.0)) @ P @ H.T @ np.linalg.inv(H @ P @ H.T + Rm)
     x_ref = x + K[:, 0] * (20.9 - z_hat[0])
     I_KH = np.eye(S.dim) - K @ H
@@ -746,7 +786,7 @@ def test_reading_the_filter_between_samples_does_not_change_it():
     fl = _short_flight()
     late = {"optical": 70_000, "tas": 30_000}
     events = sorted(fl.events, key=lambda e: (e[0] + late.get(e[2], 0), e[1]))[:6000]
-    cfg = dataclasses.replace(CFG0, fusion_delay_s=0.1)
+    cfg = CFG0.replace(timing={"fusion_delay_s": 0.1})
     ends = []
     for read in (False, True):
         ekf = NavEkf(cfg, t_us=0, pos_ned_m=fl.pos[0], vel_ned_m_s=fl.vel[0])

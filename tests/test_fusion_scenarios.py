@@ -89,7 +89,7 @@ def test_outage_position_error_grows_slowly_with_optical_and_fast_without(outage
     assert e_air[-1] > 0.01 * flown
     # honest uncertainty and validity: optical keeps the estimate valid, air data alone is flagged invalid
     assert with_opt.valid[m].mean() > 0.99
-    after = without.t_s > GNSS_OFF_S + CFG0.valid_aid_timeout_s + 0.5
+    after = without.t_s > GNSS_OFF_S + CFG0.validity.aid_timeout_s + 0.5
     assert not without.valid[after].any()
     assert (without.sigmas[-1, :2] > with_opt.sigmas[-1, :2]).all()
 
@@ -132,18 +132,17 @@ def test_nees_inside_chi_square_interval_on_a_seeded_run():
     (Measured over seeds 3, 31-34 with these assumptions: 84-98 % of steps.  The steps of one run are strongly
     correlated, so the sub-phase fractions are checked with a looser bound.)"""
     truth = TruthConfig(duration_s=150.0, seed=3)
-    matched = dataclasses.replace(
-        CFG0,
+    matched = CFG0.replace(
         # IMU 0.05 m/s^2 @ 100 Hz, AHRS 0.1 deg @ 50 Hz x g, and the 50 Hz attitude held over 2 IMU samples in turns
-        accel_noise_m_s2_per_rt_hz=0.03,
-        wind_rw_m_s_per_rt_s=0.005,           # constant wind
-        yaw_bias_rw_deg_per_rt_s=0.001,       # constant AHRS heading bias
-        baro_bias_rw_m_per_rt_s=0.02,         # baro drifts 0.002 m/s
-        terrain_rw_m_per_rt_s=0.005,          # flat ground
-        tas_sigma_m_s=0.35,                   # pitot noise 0.3 m/s (scale error: the tas_scale state)
-        baro_sigma_m=0.6,                     # 0.5 m
-        sideslip_sigma_deg=3.0,               # true sideslip ~ alpha * sin(roll): up to 0.8 deg in the turns
-        gnss_pos_ne_sigma_m=1.0, gnss_pos_d_sigma_m=2.0, gnss_vel_ne_sigma_m_s=0.1, gnss_vel_d_sigma_m_s=0.1,
+        process={"accel_noise_m_s2_per_rt_hz": 0.03,
+                 "yaw_bias_rw_deg_per_rt_s": 0.001,           # constant AHRS heading bias
+                 "baro_bias_rw_m_per_rt_s": 0.02,             # baro drifts 0.002 m/s
+                 "terrain_rw_m_per_rt_s": 0.005},             # flat ground
+        wind={"mean_rw_m_s_per_rt_s": 0.005},                 # constant wind
+        airspeed={"sigma_m_s": 0.35},                         # pitot noise 0.3 m/s (scale error: the tas_scale state)
+        baro={"sigma_m": 0.6},                                # 0.5 m
+        sideslip={"sigma_deg": 3.0},                          # true sideslip ~ alpha * sin(roll): to 0.8 deg in turns
+        gnss={"pos_ne_sigma_m": 1.0, "pos_d_sigma_m": 2.0, "vel_ne_sigma_m_s": 0.1, "vel_d_sigma_m_s": 0.1},
     )                                         # optical: matcher 0.3 px + 0.03 deg relative attitude (CFG0)
     r = run_ekf(make_flight(truth), matched, gnss_until_s=GNSS_OFF_S)
     assert r.nees_pvw.size > 1000 and np.isfinite(r.nees_pvw).all()
@@ -193,7 +192,7 @@ def test_ahrs_delay_is_learnt_and_keeps_the_filter_consistent():
     truth = TruthConfig(duration_s=150.0, seed=3, ahrs_yaw_latency_s=0.08)
     fl = make_flight(truth)
     cfg = filter_config(truth)
-    pinned = dataclasses.replace(cfg, init_att_delay_sigma_s=1e-5, att_delay_rw_s_per_rt_s=0.0)
+    pinned = cfg.replace(init={"att_delay_sigma_s": 1e-5}, process={"att_delay_rw_s_per_rt_s": 0.0})
     r, r0 = (run_ekf(fl, c, gnss_until_s=GNSS_OFF_S) for c in (cfg, pinned))
     i = S.att_delay.start
     delay, sigma = float(r.ekf.x[i]), math.sqrt(r.ekf.P[i, i])

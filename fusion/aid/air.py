@@ -15,7 +15,7 @@ from fusion.aid.base import Mat, Vec
 from fusion.state import S
 
 #: Air-relative speed (m/s) below which the airspeed and sideslip models are not evaluated (their Jacobians divide
-#: by it); the EKF never fuses airspeed below ``EkfConfig.tas_min_m_s``, which must be larger.
+#: by it); the EKF never fuses airspeed below ``EkfConfig.airspeed.min_m_s``, which must be larger.
 MIN_AIR_SPEED_M_S = 0.5
 
 # Scalar indices derived from the layout (the models run at sample rate; scalar indexing is the cheap path).

@@ -5,12 +5,12 @@ wind (PX4 EKF2's ``resetWindUsingAirspeed``), which avoids a wind far outside it
 explained away by the airspeed scale state.
 
 Partial-update (Schmidt) airspeed scale: every update multiplies the scale's row of the gain by
-``tas_scale_update_fraction`` (:mod:`fusion.core`).  In turbulence the scale and the along-heading wind are nearly
+``airspeed.scale_update_fraction`` (:mod:`fusion.core`).  In turbulence the scale and the along-heading wind are nearly
 degenerate and a fully updated scale walks away; a near-fixed scale prior instead made the wind sigma ignore a
 2-4 % pitot error.  With the calibration's prior and a small fraction the pitot error is in the wind sigma and the
 airspeed innovation variance, and a constant scale is still learnt over a few minutes of turns in smooth air.  The
-fraction follows the turbulence level: ``tas_scale_calm_fraction`` once the adapted turbulence sigma is known
-(after ``wind_turb_adapt_time_s``) to be at most ``tas_scale_calm_turb_sigma_max_m_s`` (docs/ekf-tuning.md).
+fraction follows the turbulence level: ``airspeed.scale_calm_fraction`` once the adapted turbulence sigma is known
+(after ``wind.turb_adapt_time_s``) to be at most ``airspeed.scale_calm_turb_sigma_max_m_s`` (docs/ekf-tuning.md).
 """
 
 from __future__ import annotations
@@ -60,8 +60,8 @@ class TrueAirspeed(ModelBase):
     def variance(cfg: EkfConfig, turb_var_m2_s2: float = 0.0) -> float:
         """Measurement variance (m^2/s^2): the pitot's white noise plus the share of the turbulence (variance in use
         ``turb_var_m2_s2``, per axis) that the wind state does not follow, time-correlated and so weighted down:
-        ``tas_sigma_m_s^2 + tas_turb_noise_factor^2 turb_var``."""
-        return cfg.tas_sigma_m_s**2 + cfg.tas_turb_noise_factor**2 * turb_var_m2_s2
+        ``airspeed.sigma_m_s^2 + airspeed.turb_noise_factor^2 turb_var``."""
+        return cfg.airspeed.sigma_m_s**2 + cfg.airspeed.turb_noise_factor**2 * turb_var_m2_s2
 
     @staticmethod
     def wind_from_airspeed(x: Vec, tas_m_s: float, yaw_ahrs_rad: float) -> tuple[Vec, Mat, Vec, Vec]:
@@ -91,7 +91,7 @@ class TrueAirspeed(ModelBase):
 
 
 class AirspeedAid(AidSource):
-    """Fuses every airspeed sample above ``tas_min_m_s`` (gate ``gate_airspeed_nis``); the sideslip and the angle
+    """Fuses every airspeed sample above ``airspeed.min_m_s`` (gate ``gates.airspeed_nis``); the sideslip and the angle
     of attack ride on the same sample (:mod:`fusion.aid.sideslip`, :mod:`fusion.aid.aoa`)."""
 
     name = "airspeed"
@@ -101,15 +101,15 @@ class AirspeedAid(AidSource):
         super().__init__(*args)
         self._wind_reset_pending = not self.ctx.wind_given
         # the turbulence sigma is a measurement only after one adaptation time: before, calm air is not known
-        self._calm_known_us = self.ctx.t0_us + round(self.cfg.wind_turb_adapt_time_s * US_PER_S)
-        self.core.set_partial_update(TS, self.cfg.tas_scale_update_fraction)
+        self._calm_known_us = self.ctx.t0_us + round(self.cfg.wind.turb_adapt_time_s * US_PER_S)
+        self.core.set_partial_update(TS, self.cfg.airspeed.scale_update_fraction)
 
     def push(self, t_us: int, payload: Any) -> None:
         self.ctx.timeline.push(t_us, self.name, float(payload))
 
     def control(self, t_us: int, tas: float) -> bool:
         c = self.cfg
-        if tas < c.tas_min_m_s:
+        if tas < c.airspeed.min_m_s:
             self.row.set(t_us, reason=REASON_LOW_AIRSPEED)
             return True
         if self._wind_reset_pending and self.ctx.imu.att is not None:
@@ -117,11 +117,11 @@ class AirspeedAid(AidSource):
             return False                                  # the wind is the measurement: nothing else to learn
         turb_var = self.ctx.process.turb_var
         # the scale's fraction follows the turbulence level (full update in calm air)
-        calm = t_us >= self._calm_known_us and turb_var <= c.tas_scale_calm_turb_sigma_max_m_s**2
-        g = c.tas_scale_calm_fraction if calm else c.tas_scale_update_fraction
+        calm = t_us >= self._calm_known_us and turb_var <= c.airspeed.scale_calm_turb_sigma_max_m_s**2
+        g = c.airspeed.scale_calm_fraction if calm else c.airspeed.scale_update_fraction
         if g != self.core.partial_update_fraction(TS):
             self.core.set_partial_update(TS, g)
-        self.fuse(t_us, (tas,), TrueAirspeed.from_config(c, turb_var), c.gate_airspeed_nis)
+        self.fuse(t_us, (tas,), TrueAirspeed.from_config(c, turb_var), c.gates.airspeed_nis)
         return True
 
     def reset(self, t_us: int, sample: float) -> None:
@@ -142,8 +142,8 @@ class AirspeedAid(AidSource):
         P_new[:, iw] = A.T
         P_new[im, :] = A
         P_new[:, im] = A.T
-        Pww = (A @ J.T + self.cfg.tas_sigma_m_s**2 * np.outer(d_tas, d_tas)
-               + self.cfg.sideslip_sigma_rad**2 * np.outer(d_beta, d_beta))
+        Pww = (A @ J.T + self.cfg.airspeed.sigma_m_s**2 * np.outer(d_tas, d_tas)
+               + self.cfg.sideslip.sigma_rad**2 * np.outer(d_beta, d_beta))
         P_new[np.ix_(iw, iw)] = Pww
         P_new[np.ix_(iw, im)] = Pww
         P_new[np.ix_(im, iw)] = Pww

@@ -2,7 +2,7 @@
 
 With the airspeed and the sideslip it fixes the body-frame air velocity's third component, so the vertical air
 velocity, and with the ground's vertical velocity the vertical wind, which in a bank is sideslip and so
-cross-heading wind (:mod:`fusion.state`, ``wind_d``).  Not fused beyond ``aoa_max_deg`` (stall, or a pull beyond
+cross-heading wind (:mod:`fusion.state`, ``wind_d``).  Not fused beyond ``aoa.max_deg`` (stall, or a pull beyond
 the linear lift curve).
 """
 
@@ -35,7 +35,7 @@ class LiftAngleOfAttack(ModelBase):
     state.  The predicted angle uses the AHRS attitude corrected by the heading error, as the sideslip does.  The
     measured value holds the accelerometer's z bias and whatever offsets the lift model and the AHRS pitch have,
     so the prediction is ``alpha(x) - accel_gain_rad_per_m_s2 * accel_bias_z + aoa_ofs`` (``accel_gain_rad_per_m_s2``
-    is :attr:`~fusion.config.EkfConfig.aoa_accel_gain_m` over ``V^2``, one model per sample).
+    is :attr:`~fusion.config.EkfConfig.airframe.aoa_accel_gain_m` over ``V^2``, one model per sample).
     """
 
     R_nb_ahrs: Mat
@@ -58,32 +58,33 @@ class LiftAngleOfAttack(ModelBase):
     def measured(cfg: EkfConfig, normal_force_m_s2: float, airspeed_m_s: float) -> float:
         """The lift-model angle of attack (rad) from the low-passed normal specific force (FRD z, m/s^2) and the
         corrected airspeed (m/s)."""
-        return -cfg.aoa_accel_gain_m * normal_force_m_s2 / (airspeed_m_s * airspeed_m_s) - cfg.aoa_zero_lift_rad
+        a = cfg.airframe
+        return -a.aoa_accel_gain_m * normal_force_m_s2 / (airspeed_m_s * airspeed_m_s) - a.aoa_zero_lift_rad
 
     @staticmethod
     def variance(cfg: EkfConfig, turb_var_m2_s2: float = 0.0, airspeed_m_s: float = math.inf) -> float:
-        """Measurement variance (rad^2): ``aoa_sigma_rad^2`` plus the vertical turbulence the wind state does not
+        """Measurement variance (rad^2): ``aoa.sigma_rad^2`` plus the vertical turbulence the wind state does not
         follow, seen as an angle at the airspeed:
-        ``(aoa_turb_noise_factor * wind_d_sigma_ratio * sigma_turb / V)^2``."""
-        return (cfg.aoa_sigma_rad**2
-                + (cfg.aoa_turb_noise_factor * cfg.wind_d_sigma_ratio)**2 * turb_var_m2_s2 / airspeed_m_s**2)
+        ``(aoa.turb_noise_factor * wind.vertical_sigma_ratio * sigma_turb / V)^2``."""
+        return (cfg.aoa.sigma_rad**2
+                + (cfg.aoa.turb_noise_factor * cfg.wind.vertical_sigma_ratio)**2 * turb_var_m2_s2 / airspeed_m_s**2)
 
 
 class AoaAid(AidSource):
-    """Fuses the lift-model angle of attack with each airspeed sample above ``tas_min_m_s`` (``aoa_fusion``; gate
-    ``gate_aoa_nis``), within ``aoa_max_deg``."""
+    """Fuses the lift-model angle of attack with each airspeed sample above ``airspeed.min_m_s`` (``aoa.enabled``; gate
+    ``gates.aoa_nis``), within ``aoa.max_deg``."""
 
     name = "aoa"
     listens: ClassVar[tuple[str, ...]] = ("airspeed",)
 
     def __init__(self, *args: Any) -> None:
         super().__init__(*args)
-        self._gain_m = self.cfg.aoa_accel_gain_m if self.cfg.aoa_fusion else 0.0
-        self._max_rad = math.radians(self.cfg.aoa_max_deg)
+        self._gain_m = self.cfg.airframe.aoa_accel_gain_m if self.cfg.aoa.enabled else 0.0
+        self._max_rad = math.radians(self.cfg.aoa.max_deg)
 
     def control(self, t_us: int, tas: float) -> bool:
         c = self.cfg
-        if tas < c.tas_min_m_s:
+        if tas < c.airspeed.min_m_s:
             self.row.set(t_us, reason=REASON_LOW_AIRSPEED)
             return True
         if not self._gain_m:
@@ -93,12 +94,12 @@ class AoaAid(AidSource):
         if R_nb is None or math.isnan(imu.nrm_f):
             self.row.set(t_us, reason=REASON_NO_ATTITUDE)
             return True
-        v_air = max(tas / (1.0 + float(self.core.x[TS])), c.tas_min_m_s)
+        v_air = max(tas / (1.0 + float(self.core.x[TS])), c.airspeed.min_m_s)
         z_alpha = LiftAngleOfAttack.measured(c, imu.nrm_f, v_air)
         if abs(z_alpha) > self._max_rad:                  # stall, or a pull beyond the linear lift curve
             self.row.set(t_us, reason=REASON_AOA_RANGE)
             return True
         var = LiftAngleOfAttack.variance(c, self.ctx.process.turb_var, v_air)
         model = LiftAngleOfAttack(R_nb, self._gain_m / (v_air * v_air), var)
-        self.fuse(t_us, (z_alpha,), model, c.gate_aoa_nis)
+        self.fuse(t_us, (z_alpha,), model, c.gates.aoa_nis)
         return True

@@ -26,7 +26,7 @@ class BaroAltitude(ModelBase):
 
     @classmethod
     def from_config(cls, cfg: EkfConfig) -> BaroAltitude:
-        return cls(cfg.baro_sigma_m**2)
+        return cls(cfg.baro.sigma_m**2)
 
     def linearise(self, x: Vec) -> Linearised:
         return Linearised((float(x[_BB] - x[_PD]),), _H_BARO, None, (self.var_m2,))
@@ -36,7 +36,7 @@ class BaroAltitude(ModelBase):
 
 
 class BaroAid(AidSource):
-    """Fuses every baro sample (gate ``gate_baro_nis``)."""
+    """Fuses every baro sample (gate ``gates.baro_nis``)."""
 
     name = "baro"
     events: ClassVar[dict[str, int]] = {"baro": 3}
@@ -49,5 +49,5 @@ class BaroAid(AidSource):
         self.ctx.timeline.push(t_us, self.name, float(payload))
 
     def control(self, t_us: int, sample: float) -> bool:
-        self.fuse(t_us, (sample,), self._model, self.cfg.gate_baro_nis)
+        self.fuse(t_us, (sample,), self._model, self.cfg.gates.baro_nis)
         return True

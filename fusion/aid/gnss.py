@@ -1,8 +1,8 @@
 """GNSS position and velocity: direct measurements of states, and their aid sources.
 
-GNSS rejected continuously for ``gnss_reset_after_s`` (e.g. back after a long outage) resets the position
+GNSS rejected continuously for ``gnss.reset_after_s`` (e.g. back after a long outage) resets the position
 (velocity) to it, as PX4 does; a position reset re-anchors the current optical cycle.  Position fixes closer than
-``gnss_pos_corr_time_s`` share their receiver error, so their variance is inflated by ``2 tau / dt`` (the
+``gnss.pos_corr_time_s`` share their receiver error, so their variance is inflated by ``2 tau / dt`` (the
 information rate of a Gauss-Markov error).
 """
 
@@ -44,8 +44,8 @@ class GnssPosition(ModelBase):
     def from_config(cls, cfg: EkfConfig, dim: int, sigma_ne_m: float | None = None,
                     sigma_d_m: float | None = None) -> GnssPosition:
         """The receiver's own accuracies replace the config's when given."""
-        ne = cfg.gnss_pos_ne_sigma_m if sigma_ne_m is None else float(sigma_ne_m)
-        d = cfg.gnss_pos_d_sigma_m if sigma_d_m is None else float(sigma_d_m)
+        ne = cfg.gnss.pos_ne_sigma_m if sigma_ne_m is None else float(sigma_ne_m)
+        d = cfg.gnss.pos_d_sigma_m if sigma_d_m is None else float(sigma_d_m)
         return cls(dim, _variances(ne, d, dim))
 
     @property
@@ -68,8 +68,8 @@ class GnssVelocity(ModelBase):
     @classmethod
     def from_config(cls, cfg: EkfConfig, dim: int, sigma_ne_m_s: float | None = None,
                     sigma_d_m_s: float | None = None) -> GnssVelocity:
-        ne = cfg.gnss_vel_ne_sigma_m_s if sigma_ne_m_s is None else float(sigma_ne_m_s)
-        d = cfg.gnss_vel_d_sigma_m_s if sigma_d_m_s is None else float(sigma_d_m_s)
+        ne = cfg.gnss.vel_ne_sigma_m_s if sigma_ne_m_s is None else float(sigma_ne_m_s)
+        d = cfg.gnss.vel_d_sigma_m_s if sigma_d_m_s is None else float(sigma_d_m_s)
         return cls(dim, _variances(ne, d, dim))
 
     @property
@@ -122,7 +122,7 @@ class _GnssAid(AidSource):
         since = self._reject_since
         if since is None:
             self._reject_since = t_us
-        elif t_us - since >= self.cfg.gnss_reset_after_s * US_PER_S:
+        elif t_us - since >= self.cfg.gnss.reset_after_s * US_PER_S:
             self.reset(t_us, (z, model))
             log.warning("EKF: %s rejected for %.1f s, state reset to GNSS at %d us", self.name,
                         (t_us - since) / US_PER_S, t_us)
@@ -144,7 +144,7 @@ class _GnssAid(AidSource):
 
 
 class GnssPositionAid(_GnssAid):
-    """GNSS position (gate ``gate_gnss_pos_nis``; correlated receiver error, module docstring)."""
+    """GNSS position (gate ``gates.gnss_pos_nis``; correlated receiver error, module docstring)."""
 
     name = "gnss_pos"
     events: ClassVar[dict[str, int]] = {"gnss_pos": 1}
@@ -154,11 +154,11 @@ class GnssPositionAid(_GnssAid):
         self._last_us: int | None = None
 
     def gate_nis(self) -> float:
-        return self.cfg.gate_gnss_pos_nis
+        return self.cfg.gates.gnss_pos_nis
 
     def model(self, t_us: int, dim: int, sigmas: tuple[float | None, float | None]) -> GnssPosition:
         m = GnssPosition.from_config(self.cfg, dim, *sigmas)
-        tau = self.cfg.gnss_pos_corr_time_s
+        tau = self.cfg.gnss.pos_corr_time_s
         # correlated receiver error: fixes closer than the correlation time share their error
         if self._last_us is not None and tau > 0.0:
             dt = max(t_us - self._last_us, 1) / US_PER_S
@@ -169,13 +169,13 @@ class GnssPositionAid(_GnssAid):
 
 
 class GnssVelocityAid(_GnssAid):
-    """GNSS velocity (gate ``gate_gnss_vel_nis``)."""
+    """GNSS velocity (gate ``gates.gnss_vel_nis``)."""
 
     name = "gnss_vel"
     events: ClassVar[dict[str, int]] = {"gnss_vel": 2}
 
     def gate_nis(self) -> float:
-        return self.cfg.gate_gnss_vel_nis
+        return self.cfg.gates.gnss_vel_nis
 
     def model(self, t_us: int, dim: int, sigmas: tuple[float | None, float | None]) -> GnssVelocity:
         return GnssVelocity.from_config(self.cfg, dim, *sigmas)

@@ -115,21 +115,21 @@ class OpticalDisplacement(ModelBase):
     def noise_sigma_px(step: GsoeStep, cfg: EkfConfig) -> tuple[float, float]:
         """(matcher sigma, attitude-induced sigma) in px for one step.
 
-        Matcher: ``optical_match_sigma_px / q`` with the quality ``q = clip(psr / optical_psr_ref,
-        optical_quality_floor, 1)`` (a non-finite PSR counts as the floor), or ``optical_ssd_sigma_factor`` times the
+        Matcher: ``optical.match_sigma_px / q`` with the quality ``q = clip(psr / optical.psr_ref,
+        optical.quality_floor, 1)`` (a non-finite PSR counts as the floor), or ``optical.ssd_sigma_factor`` times the
         match's own SSD precision ``quality.match_sigma_px`` where that is larger.  Attitude: ``focal_px`` times the
-        relative attitude error between base and current frame, ``optical_att_rel_sigma_rad +
-        optical_att_rel_sigma_per_rad * rel_rot_rad + optical_att_rel_sigma_rad_per_s * (t - base_t)``
+        relative attitude error between base and current frame, ``optical.att_rel_sigma_rad +
+        optical.att_rel_sigma_per_rad * rel_rot_rad + optical.att_rel_sigma_rad_per_s * (t - base_t)``
         (independent of altitude: an angle error moves the image by ``f * angle`` pixels at any height)."""
         psr = step.quality.psr
-        q = psr / cfg.optical_psr_ref if not math.isnan(psr) else 0.0
-        q = min(1.0, max(cfg.optical_quality_floor, q))
-        rel = step.rel_rot_rad if math.isfinite(step.rel_rot_rad) else cfg.optical_rel_rot_fallback_rad
+        q = psr / cfg.optical.psr_ref if not math.isnan(psr) else 0.0
+        q = min(1.0, max(cfg.optical.quality_floor, q))
+        rel = step.rel_rot_rad if math.isfinite(step.rel_rot_rad) else cfg.optical.rel_rot_fallback_rad
         elapsed_s = max(0, step.t_us - step.base_t_us) * 1e-6
-        att_rad = (cfg.optical_att_rel_sigma_rad + cfg.optical_att_rel_sigma_per_rad * abs(rel)
-                   + cfg.optical_att_rel_sigma_rad_per_s * elapsed_s)
-        match = cfg.optical_match_sigma_px / q
-        ssd = cfg.optical_ssd_sigma_factor * step.quality.match_sigma_px
+        att_rad = (cfg.optical.att_rel_sigma_rad + cfg.optical.att_rel_sigma_per_rad * abs(rel)
+                   + cfg.optical.att_rel_sigma_rad_per_s * elapsed_s)
+        match = cfg.optical.match_sigma_px / q
+        ssd = cfg.optical.ssd_sigma_factor * step.quality.match_sigma_px
         if ssd > match:                                   # False for nan (no SSD precision: the PSR model alone)
             match = ssd
         return match, step.focal_px * att_rad
@@ -142,7 +142,7 @@ class OpticalDisplacement(ModelBase):
 
 
 class OpticalAid(AidSource):
-    """Fuses the optical steps of each cycle against its clone (module docstring; gate ``gate_optical_nis``)."""
+    """Fuses the optical steps of each cycle against its clone (module docstring; gate ``gates.optical_nis``)."""
 
     name = "optical"
     events: ClassVar[dict[str, int]] = {"optical": 5, "clone": 6}     # the clone after the previous cycle's last step
@@ -196,7 +196,7 @@ class OpticalAid(AidSource):
             row.set(t, rejected=True, reason=REASON_INVALID_MATCH)
             return True
         model = OpticalDisplacement.for_step(step, self.cfg)
-        if model.height_base_m(self.core.x) < self.cfg.optical_min_height_m:
+        if model.height_base_m(self.core.x) < self.cfg.optical.min_height_m:
             row.set(t, rejected=True, reason=REASON_LOW_HEIGHT)
             return True
         if self._clone_cycle != step.cycle_id:
@@ -205,7 +205,7 @@ class OpticalAid(AidSource):
                 return True
             self.reset(t, (model, step))
             return True
-        self.fuse(t, (float(step.dx_px), float(step.dy_px)), model, self.cfg.gate_optical_nis)
+        self.fuse(t, (float(step.dx_px), float(step.dy_px)), model, self.cfg.gates.optical_nis)
         return True
 
     def clone(self, t_us: int, cycle_id: int) -> bool:

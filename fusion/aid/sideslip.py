@@ -2,7 +2,7 @@
 
 In coordinated flight the aircraft points into the relative wind, which together with the airspeed makes the wind
 observable without turns.  The measured value is either 0 (the classic zero-sideslip assumption) or the side-force
-sideslip from the low-passed lateral specific force (``sideslip_side_force_coef_per_rad`` not 0).
+sideslip from the low-passed lateral specific force (``airframe.side_force_coef_per_rad`` not 0).
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ class SyntheticSideslip(ModelBase):
     heading error (:mod:`fusion.aid.air`).  With the side-force model the measured value is
     ``accel_gain_rad_per_m_s2 * f_y`` of the low-passed lateral specific force ``f_y`` (the airframe's side force
     ``q S C_Ybeta beta = m f_y``: ``beta = 2 m f_y / (rho S C_Ybeta V^2)``, i.e. the gain is
-    :attr:`~fusion.config.EkfConfig.sideslip_accel_gain_m` over ``V^2``).  The accelerometer's bias is in that
+    :attr:`~fusion.config.EkfConfig.airframe.sideslip_accel_gain_m` over ``V^2``).  The accelerometer's bias is in that
     reading, so with a non-zero gain the prediction is ``beta(x) + accel_gain_rad_per_m_s2 * (accel_bias_y +
     side_force_ofs)`` (the offset is the part of the reading at zero sideslip that the bias state, shared with the
     prediction's AHRS tilt error, does not hold: see :mod:`fusion.state`).  The gain changes with each sample's
@@ -55,25 +55,25 @@ class SyntheticSideslip(ModelBase):
 
     @staticmethod
     def variance(cfg: EkfConfig, turb_var_m2_s2: float = 0.0, airspeed_m_s: float = math.inf) -> float:
-        """Measurement variance (rad^2): ``sideslip_sigma_rad^2`` plus the lateral turbulence the wind state does
-        not follow, seen as an angle at the airspeed: ``(sideslip_turb_noise_factor * sigma_turb / V)^2`` (the
+        """Measurement variance (rad^2): ``sideslip.sigma_rad^2`` plus the lateral turbulence the wind state does
+        not follow, seen as an angle at the airspeed: ``(sideslip.turb_noise_factor * sigma_turb / V)^2`` (the
         sideslip's counterpart of :meth:`~fusion.aid.airspeed.TrueAirspeed.variance`)."""
-        return cfg.sideslip_sigma_rad**2 + cfg.sideslip_turb_noise_factor**2 * turb_var_m2_s2 / airspeed_m_s**2
+        return cfg.sideslip.sigma_rad**2 + cfg.sideslip.turb_noise_factor**2 * turb_var_m2_s2 / airspeed_m_s**2
 
 
 class SideslipAid(AidSource):
-    """Fuses the sideslip with each airspeed sample above ``tas_min_m_s`` (``sideslip_fusion``; gate
-    ``gate_sideslip_nis``), at the AHRS attitude of the last IMU sample at or before the stamp."""
+    """Fuses the sideslip with each airspeed sample above ``airspeed.min_m_s`` (``sideslip.enabled``; gate
+    ``gates.sideslip_nis``), at the AHRS attitude of the last IMU sample at or before the stamp."""
 
     name = "sideslip"
     listens: ClassVar[tuple[str, ...]] = ("airspeed",)
 
     def control(self, t_us: int, tas: float) -> bool:
         c = self.cfg
-        if tas < c.tas_min_m_s:
+        if tas < c.airspeed.min_m_s:
             self.row.set(t_us, reason=REASON_LOW_AIRSPEED)
             return True
-        if not c.sideslip_fusion:
+        if not c.sideslip.enabled:
             return True
         R_nb = self.ctx.imu.R_nb()
         if R_nb is None:
@@ -82,11 +82,11 @@ class SideslipAid(AidSource):
         # the side-force sideslip (measured value) from the lateral specific force and the corrected airspeed;
         # 0 with the model off (zero sideslip)
         k_beta, z_beta = 0.0, 0.0
-        v_air = max(tas / (1.0 + float(self.core.x[TS])), c.tas_min_m_s)
+        v_air = max(tas / (1.0 + float(self.core.x[TS])), c.airspeed.min_m_s)
         lat_f = self.ctx.imu.lat_f
-        if c.sideslip_accel_gain_m and not math.isnan(lat_f):
-            k_beta = c.sideslip_accel_gain_m / (v_air * v_air)
+        if c.airframe.sideslip_accel_gain_m and not math.isnan(lat_f):
+            k_beta = c.airframe.sideslip_accel_gain_m / (v_air * v_air)
             z_beta = k_beta * lat_f
         var = SyntheticSideslip.variance(c, self.ctx.process.turb_var, v_air)
-        self.fuse(t_us, (z_beta,), SyntheticSideslip(R_nb, k_beta, var), c.gate_sideslip_nis)
+        self.fuse(t_us, (z_beta,), SyntheticSideslip(R_nb, k_beta, var), c.gates.sideslip_nis)
         return True
