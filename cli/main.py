@@ -28,8 +28,30 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+# subcommand -> (the pyproject extra that installs what it needs, modules of that extra it imports)
+EXTRAS: dict[str, tuple[str, tuple[str, ...]]] = {
+    "companion": ("companion", ("mavsdk", "pymavlink")),
+    "render": ("sim", ("numba",)),
+    "bench": ("sim", ("numba",)),
+    "sim": ("sim", ("jsbsim", "numba", "tqdm", "matplotlib")),
+    "sitl-camera": ("sim", ("numba", "pymavlink")),
+    "montecarlo": ("mc", ("jsbsim", "numba", "dask", "distributed", "tomli_w")),
+    "replay": ("report", ("matplotlib", "pymavlink")),
+    "report": ("report", ("matplotlib",)),
+}
+
+
 def _available() -> dict[str, tuple[str, str]]:
     return {k: v for k, v in SUBCOMMANDS.items() if importlib.util.find_spec(v[0]) is not None}
+
+
+def missing_extra(command: str) -> str | None:
+    """What to install for ``command`` when a module of its extra is not importable (None: all there)."""
+    extra, modules = EXTRAS.get(command, ("", ()))
+    missing = [m for m in modules if importlib.util.find_spec(m) is None]
+    if not missing:
+        return None
+    return f"needs the [{extra}] extra (missing: {', '.join(missing)}): pip install 'gsoe-nav[{extra}]'"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -39,8 +61,12 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     chosen = next((a for a in argv if not a.startswith("-")), None)
     for name, (mod_name, help_text) in _available().items():
-        sp = sub.add_parser(name, help=help_text)
+        need = missing_extra(name)
+        sp = sub.add_parser(name, help=help_text + (f" [not installed: gsoe-nav[{EXTRAS[name][0]}]]" if need else ""))
         if name == chosen:
+            if need:
+                print(f"gsoe {name}: {need}", file=sys.stderr)
+                return 2
             importlib.import_module(mod_name).add_arguments(sp)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,

@@ -1,10 +1,15 @@
 """Reading configuration files (TOML): the project's config folder, parsing with file-named errors, relative paths,
-the known top-level tables and ``--set`` overrides."""
+the known top-level tables and ``--set`` overrides.
+
+The config folder (``config/`` in the repository: ``default.toml``, ``camera/``, ``scenarios/``, ``montecarlo/``) is
+read through :mod:`importlib.resources` as the package data ``common/config_data`` (a link to ``config/`` in the
+source tree, a copy in a built wheel), so ``pip install gsoe-nav`` carries its defaults."""
 
 from __future__ import annotations
 
 import difflib
 import functools
+import importlib.resources
 import tomllib
 from collections.abc import Iterable
 from pathlib import Path
@@ -12,7 +17,16 @@ from typing import Any
 
 from common.config import ConfigError
 
-CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
+
+def _config_dir() -> Path:
+    """The project's config folder, as package data of :mod:`common` (``common/config_data``): in the source tree
+    a link to the repository's ``config/`` (resolved, so messages name ``config/...``), in an installed wheel the
+    copy the wheel carries.  Wheels install unzipped, so it is always a real folder."""
+    data = importlib.resources.files("common").joinpath("config_data")
+    return Path(str(data)).resolve()
+
+
+CONFIG_DIR = _config_dir()
 DEFAULT_CONFIG = CONFIG_DIR / "default.toml"
 
 

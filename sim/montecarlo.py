@@ -607,7 +607,7 @@ def code_fingerprint() -> str:
     """First :data:`CODE_FINGERPRINT_HEX` hex digits of the SHA-256 of the files under :data:`CODE_PACKAGES` (their
     paths relative to the tree and their bytes, in sorted order; compiled caches left out): two runs with the same
     seed and parameters fly the same flight when their fingerprints match (and the libraries are the same)."""
-    root = CONFIG_DIR.parent
+    root = Path(__file__).resolve().parent.parent  # the tree holding the packages (and config/ in a checkout)
     files = sorted(f for pkg in CODE_PACKAGES for f in (root / pkg).rglob("*")
                    if f.is_file() and "__pycache__" not in f.parts and f.suffix != ".pyc")
     h = hashlib.sha256()
