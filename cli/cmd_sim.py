@@ -30,13 +30,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", default=None, help="estimator configuration (default config/default.toml)")
     p.add_argument("--full-frame", action="store_true", help="render whole frames instead of the estimator's ROI")
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--list-scenarios", action="store_true", help="list the named scenarios and exit")
 
 
 def run(args: argparse.Namespace) -> int:
     from common.logio import claim_run_folder
     from sim.run import run_flight
-    from sim.scenario import load_scenario
+    from sim.scenario import load_scenario, scenario_descriptions
 
+    if args.list_scenarios:
+        for name, text in scenario_descriptions().items():
+            print(f"{name:16s} {text}{'  (default)' if name == DEFAULT_SCENARIO else ''}")
+        return 0
     scn = load_scenario(args.scenario)
     if args.duration is not None and not (args.duration > 0 and math.isfinite(args.duration)):
         print(f"gsoe sim: --duration must be > 0, got {args.duration}")

@@ -53,6 +53,7 @@ from common.samples import AirspeedSample, AttitudeSample, BaroSample, GnssSampl
 from fusion.config import ekf_config_from_raw
 from gsoe.camera import CameraModel
 from gsoe.config import GsoeConfig
+from nav.camera_sources import FrameSource, open_source
 from nav.gnss_monitor import Announcement, Consistency, GnssMonitor, GnssMonitorConfig, GnssState
 from nav.guidance import GuidanceConfig, TargetGuidance, change_heading_command_fields, forward_camera
 from nav.hygiene import pixel_in_image
@@ -104,6 +105,9 @@ class CompanionConfig(Validated):
     ``status_s``: period of the one-line status in the log; ``max_frame_age_s``: frames older than this when
     processed are skipped (the loop fell behind); ``use_ekf``: run the EKF.  When a frame is processed, how long
     it waits for attitude, how the EKF starts and when an estimate is stale are the pipeline's (``[pipeline]``).
+    ``camera_fps``: the frame rate asked of a camera device (0: the device's own; the size asked is the camera
+    file's, :mod:`nav.camera_sources`); ``video_pacing``: a video file as the camera is read at its own timestamps
+    (``"own_timestamps"``) or as fast as it decodes (``"as_fast_as_possible"``, stamped when read).
     """
 
     camera_latency_s: Annotated[float, In(0.0, 5.0)] = 0.0
@@ -113,6 +117,8 @@ class CompanionConfig(Validated):
     status_s: Annotated[float, In(0.1, 3600.0)] = 5.0
     max_frame_age_s: Annotated[float, In(0.01, 60.0)] = 0.5
     use_ekf: bool = True
+    camera_fps: Annotated[float, In(0.0, 1000.0)] = 0.0
+    video_pacing: Literal["own_timestamps", "as_fast_as_possible"] = "own_timestamps"
     camera_reconnect_s: Annotated[float, In(0.01, 600.0)] = 0.5
     announce_min_interval_s: Annotated[float, In(0.0, 3600.0)] = 2.0
     link: LinkConfig = field(default_factory=LinkConfig)
@@ -166,15 +172,19 @@ class SimFrameClient:
 class CameraThread:
     """Reads frames from ``source`` in a thread; keeps only the newest (a slow loop skips frames, never lags).
 
-    ``source``: a device index (``"0"``), a file, a GStreamer pipeline or RTSP URL (anything ``cv2.VideoCapture``
-    opens), or ``sim://HOST:PORT``.  ``latest()`` returns ``(t_us, frame, from_vehicle_clock, captured_us)``:
+    ``source``: a device index (``"0"``), a video file, an RTSP URL, ``picam://N``, a GStreamer pipeline where
+    OpenCV has GStreamer (:mod:`nav.camera_sources`: opened at ``size_px``, the camera file's size; a video file is
+    not reopened at its end), or ``sim://HOST:PORT``.
+    ``latest()`` returns ``(t_us, frame, from_vehicle_clock, captured_us)``:
     the exposure time, the image, whether ``t_us`` is on the vehicle's clock, and when the frame was read.  A lost
     camera is reopened every ``camera_reconnect_s``; openings and losses are queued in :attr:`events`.
     """
 
-    def __init__(self, source: str, cfg: CompanionConfig, clock: Callable[[], int] = now_us) -> None:
+    def __init__(self, source: str, cfg: CompanionConfig, clock: Callable[[], int] = now_us,
+                 size_px: tuple[int, int] = (0, 0)) -> None:
         self.source = source
         self.cfg = cfg
+        self.size_px = size_px
         self.clock = clock
         self._slot: queue.Queue[tuple[int, Any, bool, int]] = queue.Queue(maxsize=1)
         self.events: queue.Queue[tuple[int, str]] = queue.Queue()
@@ -189,12 +199,8 @@ class CameraThread:
         if self.source.startswith(SIM_SCHEME):
             host, port = self.source[len(SIM_SCHEME):].rsplit(":", 1)
             return SimFrameClient(host, int(port), self.cfg.frame_timeout_s)
-        src: int | str = int(self.source) if self.source.isdigit() else self.source
-        cap = cv2.VideoCapture(src)
-        if not cap.isOpened():
-            cap.release()
-            raise OSError(f"cv2.VideoCapture could not open {self.source!r}")
-        return cap
+        return open_source(self.source, self.size_px, self.cfg.camera_fps, self.cfg.camera_latency_s,
+                           self.cfg.video_pacing == "as_fast_as_possible", self.clock)
 
     def _run(self) -> None:
         reported = False
@@ -217,18 +223,18 @@ class CameraThread:
                 why = self._read_loop(cap)
             finally:
                 self.opened = False
-                if isinstance(cap, SimFrameClient):
-                    cap.close()
-                else:
-                    cap.release()
+                cap.close()
+            if getattr(cap, "finished", False):
+                log.info("camera %s: %s", self.source, why)
+                self.events.put((self.clock(), why))
+                return
             if not self._stop.is_set():
                 log.warning("camera %s lost (%s); reopening every %.1f s", self.source, why,
                             self.cfg.camera_reconnect_s)
                 self.events.put((self.clock(), f"lost: {why}"))
                 self._stop.wait(self.cfg.camera_reconnect_s)
 
-    def _read_loop(self, cap: Any) -> str:
-        latency_us = int(self.cfg.camera_latency_s * 1e6)
+    def _read_loop(self, cap: SimFrameClient | FrameSource) -> str:
         while not self._stop.is_set():
             try:
                 if isinstance(cap, SimFrameClient):
@@ -237,11 +243,10 @@ class CameraThread:
                         return "stream closed"
                     item: tuple[int, Any, bool, int] = (got[0], got[1], True, self.clock())
                 else:
-                    ok, frame = cap.read()
-                    got_us = self.clock()
-                    if not ok:
-                        return "no frame from cv2.VideoCapture"
-                    item = (got_us - latency_us, frame, False, got_us)
+                    shot = cap.read()
+                    if shot is None:
+                        return cap.why or "no frame"
+                    item = (shot[0], shot[1], False, self.clock())
             except (OSError, cv2.error, ValueError) as e:
                 self.failures += 1
                 return f"read failed: {e}"
@@ -262,6 +267,32 @@ class CameraThread:
     def stop(self) -> None:
         self._stop.set()
         self._thread.join(timeout=3.0)
+
+
+def _counts(d: dict[str, int]) -> str:
+    return ", ".join(f"{k} {v}" for k, v in sorted(d.items(), key=lambda kv: -kv[1]))
+
+
+def status_line(s: dict[str, Any], before: dict[str, Any], dt_s: float) -> str:
+    """:meth:`Companion.status` as one readable line: link, GNSS, camera, frame rate since the last line, what was
+    sent and withheld (and why), and what was rejected."""
+    rate = (s["frames"] - before.get("frames", 0)) / dt_s if dt_s > 0 else math.nan
+    rejected = sum(s["frames_rejected"].values())
+    withheld = sum(s["outputs_suppressed"].values())
+    parts = [f"link {'up' if s['connected'] else 'DOWN'}", f"GNSS {s['gnss']}",
+             f"camera {'open' if s['camera_open'] else 'CLOSED'} {rate:.1f} fps",
+             f"frames {s['frames']} (rejected {rejected}{': ' + _counts(s['frames_rejected']) if rejected else ''}"
+             f", stale {s['frames_stale']})", f"EKF steps {s['steps']}",
+             f"estimates sent {s['outputs_sent']}, withheld {withheld}"
+             + (f" ({_counts(s['outputs_suppressed'])})" if withheld else "")]
+    telemetry = sum(s["telemetry_rejected"].values())
+    if telemetry:
+        parts.append(f"telemetry rejected {telemetry} ({_counts(s['telemetry_rejected'])})")
+    if s["estimator_errors"]:
+        parts.append(f"estimator errors {s['estimator_errors']}")
+    if s["commands"]:
+        parts.append(f"heading commands {s['commands']}")
+    return " | ".join(parts)
 
 
 def check_frame(frame: Any, camera: CameraModel) -> tuple[NDArray[np.uint8] | None, str]:
@@ -451,7 +482,7 @@ class Companion:
         else:
             self.tracker = TemplateTracker(self.cfg.tracker)
         self.target_px = target_px
-        self.camera_thread = CameraThread(camera_source, self.cfg)
+        self.camera_thread = CameraThread(camera_source, self.cfg, size_px=self.camera.size_px)
         self.counters = Counters()
         self._stop = threading.Event()
         self._last_att: AttitudeSample | None = None
@@ -701,6 +732,8 @@ class Companion:
 
     def run(self, duration_s: float | None = None) -> dict[str, Any]:
         start = time.monotonic()
+        self._status_before: dict[str, Any] = {}
+        self._status_t = start
         last_status = last_flush = last_house = start
         frame_wait_s = min(0.05, self.cfg.frame_timeout_s)
         poll_s = 0.002
@@ -729,7 +762,8 @@ class Companion:
                     self.runlog.flush()
                 if now - last_status >= self.cfg.status_s:
                     last_status = now
-                    log.info("status: %s", self.status())
+                    log.info("status: %s", status_line(self.status(), self._status_before, now - self._status_t))
+                    self._status_before, self._status_t = self.status(), now
         finally:
             self.close()
         return self.status()

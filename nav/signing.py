@@ -68,8 +68,11 @@ class CommandEndpoint:
     """
 
     def __init__(self, url: str, key: bytes | None, source_system: int = 1, source_component: int = 191) -> None:
-        self.conn = mavutil.mavlink_connection(url, source_system=source_system, source_component=source_component,
-                                               dialect="ardupilotmega")
+        # ``url``: a pymavlink device; a serial port as ``DEVICE,BAUD`` (nav.urls.LinkUrl.pymavlink)
+        device, comma, baud = url.partition(",")
+        extra = {"baud": int(baud)} if comma and baud.isdigit() else {}
+        self.conn = mavutil.mavlink_connection(device if extra else url, source_system=source_system,
+                                               source_component=source_component, dialect="ardupilotmega", **extra)
         self.stats = SignedLinkStats()
         self.signed = key is not None
         self.system_id, self.component_id = int(source_system), int(source_component)

@@ -414,11 +414,30 @@ def build_scenario(data: Mapping[str, Any]) -> Scenario:
     return build(Scenario, data, "")
 
 
+def scenario_names() -> list[str]:
+    """The named scenarios (``config/scenarios/*.toml``), sorted."""
+    return sorted(p.stem for p in SCENARIO_DIR.glob("*.toml"))
+
+
+def scenario_descriptions() -> dict[str, str]:
+    """Each named scenario's ``description`` (with ``extends``, the file's own or else its parent's)."""
+    out = {}
+    for name in scenario_names():
+        raw = _read_raw(SCENARIO_DIR / f"{name}.toml", 0)
+        out[name] = str(raw.get("description", ""))
+    return out
+
+
 def scenario_path(path_or_name: str | Path) -> Path:
-    """A bare name (``"paper_sil"``) is ``config/scenarios/<name>.toml``; anything else is a path."""
+    """A bare name (``"paper_sil"``) is ``config/scenarios/<name>.toml``; anything else is a path.  An unknown name
+    raises :class:`ConfigError` listing the known ones."""
     p = Path(path_or_name)
     if p.suffix == "" and len(p.parts) == 1:
-        return SCENARIO_DIR / f"{p.name}.toml"
+        path = SCENARIO_DIR / f"{p.name}.toml"
+        if not path.is_file():
+            raise ConfigError(str(path_or_name), f"unknown scenario; known: {', '.join(scenario_names())} "
+                              "(or a path to a scenario file)")
+        return path
     return p
 
 

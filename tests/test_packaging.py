@@ -12,6 +12,7 @@ from __future__ import annotations
 import email
 import json
 import os
+import shutil
 import socket
 import subprocess
 import sys
@@ -44,7 +45,11 @@ importlib.util.find_spec = lambda n, *a: None if n.split('.')[0] in {NOT_ON_A_CO
 @pytest.fixture(scope="module")
 def wheel(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("wheel")
-    r = subprocess.run([PY, "-m", "pip", "wheel", "-q", "--no-deps", "-w", str(out), str(ROOT)], capture_output=True,
+    # a copy of the tree: setuptools builds in place, and a stale build/ of the checkout would go into the wheel
+    src = tmp_path_factory.mktemp("src") / "gsoe-nav"
+    shutil.copytree(ROOT, src, symlinks=True, ignore=shutil.ignore_patterns(
+        ".venv", ".git", "build", "dist", "out", "logs", "runs", "*.egg-info", "__pycache__", ".*_cache", "tests"))
+    r = subprocess.run([PY, "-m", "pip", "wheel", "-q", "--no-deps", "-w", str(out), str(src)], capture_output=True,
                        text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     (whl,) = out.glob("gsoe_nav-*.whl")

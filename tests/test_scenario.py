@@ -198,7 +198,7 @@ def test_file_errors_name_file_and_field(tmp_path: Path) -> None:
     with pytest.raises(ConfigError) as ei:
         load_scenario(p)
     assert ei.value.field_path == f"{p}: wind.speed_m_s"
-    with pytest.raises(ConfigError, match="file not found"):
+    with pytest.raises(ConfigError, match="unknown scenario; known: .*paper_sil"):
         load_scenario("no_such_scenario")
     p.write_text("name = [unclosed\n")
     with pytest.raises(ConfigError, match="not valid TOML"):
