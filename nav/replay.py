@@ -44,23 +44,12 @@ GNSS outage (``gnss_off_at_s``, seconds from the start of the log)
     the EKF position (interpolated to the fix time) and the last GNSS fix, ``dr_distance_m`` the length of the GNSS
     track from ``gnss_off_at_s`` to that fix.
 
-EKF profile (:data:`REPLAY_EKF_PROFILE`, on top of ``[ekf]``; the ``[replay.ekf]`` table overrides it)
-    ``accel_noise_m_s2_per_rt_hz = 1.0``: telemetry logs carry single IMU samples at about 10 Hz (vibration of 1-3
-    m/s^2 per sample is not averaged out: ``sigma * sqrt(dt)`` is 0.3-1 m/s^2/sqrt(Hz)) and attitude at 2-4 Hz,
-    interpolated through turns; with the simulator's 0.05 the filter rejected 14 % of the ALFA log's GNSS
-    velocities.  ``wind_rw_m_s_per_rt_s = 0.02``: ArduPilot's EKF2/EKF3 add ``(dt * WIND_P_NSE)^2`` of wind variance
-    per 10-12 ms step (``WIND_P_NSE`` 0.1-0.2 m/s^2), a random walk of about 0.01-0.02 m/s/sqrt(s): the autopilot
-    estimates the *steady* wind, and the replay estimates the same quantity to compare with it (the simulator's
-    default follows turbulence).  For the same reason the Gauss-Markov turbulence on top of the mean wind is off
-    (``wind_turb_sigma_m_s = wind_turb_sigma_min_m_s = 0.001``, ``wind_turb_adapt_time_s = 0``: the wind state is
-    one random walk, as in ArduPilot; with the simulator's 1.5 m/s turbulence the replayed wind followed every gust
-    and differed from the autopilot's by 1.5 m/s RMS).  ``tas_sigma_m_s = 1.0``: with a steady wind the gusts are
-    airspeed noise (ArduPilot uses 1.4);
-    1.0 gives a mean airspeed NIS of about 1 on the ALFA engine-failure log.
-    ``aoa_fusion = false``: the vertical wind's sigma is a ratio of the turbulence's, so with the turbulence off the
-    ``wind_d`` state is pinned, and the lift-model angle of attack could then only move the vertical velocity
-    (:class:`~fusion.config.EkfConfig`).  On the ALFA engine-failure log with it on (and the simulated Talon's lift
-    curve, not this airframe's) the wind was 1.07 m/s RMS from the autopilot's against 0.90.
+Configuration profile ``telemetry_replay`` (``[ekf.profiles.telemetry_replay]`` and
+``[pipeline.profiles.telemetry_replay]`` in ``config/default.toml``, where each setting says why; the ``[replay.ekf]``
+table overrides the EKF's on top)
+    Telemetry carries 10 Hz IMU and 2-4 Hz attitude, and the autopilot's WIND is a steady-wind estimate: the profile
+    raises the acceleration noise, makes the wind one random walk as ArduPilot's, weights the airspeed as gusty, turns
+    the lift-model angle of attack off, and takes the log's attitude as given (docs/ekf-tuning.md).
     GNSS samples are moved back by ``replay.gnss_delay_s`` (0.2 s, ArduPilot's default GPS lag): logged fixes carry
     the time they reached the autopilot; on the ALFA log the wind triangle ``v_gnss - tas * heading`` varies least
     with the GNSS velocity taken 0.15-0.2 s earlier than its stamp.
@@ -122,19 +111,8 @@ PLOT_DPI = 90
 #: CSV streams (:mod:`common.logio`) a replay writes into its output folder.
 CSV_STREAMS = ("ekf", "aid_status", "gsoe", "gnss", "autopilot_wind")
 
-#: the configuration profile a replay of telemetry runs with (``[pipeline.profiles.telemetry_replay]``)
+#: the configuration profile a replay of telemetry runs with (``[ekf.profiles.*]``, ``[pipeline.profiles.*]``)
 REPLAY_PROFILE = "telemetry_replay"
-#: EKF settings a replay puts on top of ``[ekf]`` (see the module docstring, "EKF profile").
-REPLAY_EKF_PROFILE: dict[str, float] = {
-    "accel_noise_m_s2_per_rt_hz": 1.0,
-    "wind_rw_m_s_per_rt_s": 0.02,
-    "wind_turb_sigma_m_s": 0.001,
-    "wind_turb_sigma_min_m_s": 0.001,
-    "wind_turb_adapt_time_s": 0.0,
-    "tas_sigma_m_s": 1.0,
-    "aoa_fusion": False,
-}
-
 
 class ReplayError(ValueError):
     """The log cannot be replayed (no GNSS fix, no IMU or attitude, too little data, bad option); the message says
@@ -178,8 +156,8 @@ class ReplayConfig(Validated):
 def replay_configs_from_raw(raw: Mapping[str, Any]) -> tuple[ReplayConfig, EkfConfig]:
     """The replay settings and the EKF configuration a replay runs with, from a whole configuration mapping.
 
-    The EKF configuration is ``[ekf]`` with :data:`REPLAY_EKF_PROFILE` on top and then the ``[replay.ekf]`` table (any
-    :class:`~fusion.config.EkfConfig` field); errors name ``replay.<field>`` or ``ekf.<field>``.
+    The EKF configuration is ``[ekf]`` with its profile :data:`REPLAY_PROFILE` on top and then the ``[replay.ekf]``
+    table (any :class:`~fusion.config.EkfConfig` key); errors name ``replay.<field>`` or ``ekf.<field>``.
     """
     table = raw.get("replay", {})
     if not isinstance(table, Mapping):
@@ -188,10 +166,20 @@ def replay_configs_from_raw(raw: Mapping[str, Any]) -> tuple[ReplayConfig, EkfCo
     if not isinstance(overrides, Mapping):
         raise ConfigError("replay.ekf", f"must be a table, got {type(overrides).__name__}")
     rcfg = build(ReplayConfig, {k: v for k, v in table.items() if k != "ekf"}, "replay")
-    base = raw.get("ekf", {})
-    if not isinstance(base, Mapping):
-        raise ConfigError("ekf", f"must be a table, got {type(base).__name__}")
-    return rcfg, ekf_config_from_raw({"ekf": {**base, **REPLAY_EKF_PROFILE, **overrides}})
+    ekf = raw.get("ekf", {})
+    return rcfg, ekf_config_from_raw({"ekf": ekf}, replay_profile(raw, "ekf"), overrides=overrides)
+
+
+def replay_profile(raw: Mapping[str, Any], table: str) -> str | None:
+    """:data:`REPLAY_PROFILE` when ``[table.profiles]`` of the configuration holds it; otherwise None, with a
+    warning (a configuration file of one's own without it replays with the table as it is)."""
+    t = raw.get(table, {})
+    profiles = t.get("profiles", {}) if isinstance(t, Mapping) else {}
+    if isinstance(profiles, Mapping) and REPLAY_PROFILE in profiles:
+        return REPLAY_PROFILE
+    log.warning("the configuration has no [%s.profiles.%s]: replaying with [%s] as it is", table, REPLAY_PROFILE,
+                table)
+    return None
 
 
 @dataclass
@@ -554,7 +542,7 @@ def run_replay(log_path: str | Path, *, out_dir: str | Path | None = None, confi
         for name in CSV_STREAMS:                 # RunLog appends: a rerun into the same folder starts afresh
             (Path(out_dir) / f"{name}.csv").unlink(missing_ok=True)
     runlog = RunLog(out_dir) if out_dir is not None else None
-    pipe = NavPipeline(gsoe_cfg, ekf_cfg, pipeline_config_from_raw(raw, REPLAY_PROFILE),
+    pipe = NavPipeline(gsoe_cfg, ekf_cfg, pipeline_config_from_raw(raw, replay_profile(raw, "pipeline")),
                        CameraModel.from_config(gsoe_cfg.camera), sink=_replay_sink(runlog))
     if alt_source == "baro":
         pipe.on_ground_level(ground_alt_m)
@@ -621,7 +609,7 @@ def run_replay(log_path: str | Path, *, out_dir: str | Path | None = None, confi
         "aid_fused": {k: {"fused": s.n_fused, "rejected": s.n_rejected} for k, s in ekf.status().items()},
         "baro_offset_m": baro_offset_m,
         "gnss_delay_s": rcfg.gnss_delay_s,
-        "ekf_replay_profile": {k: getattr(ekf_cfg, k) for k in REPLAY_EKF_PROFILE},
+        "ekf_replay_profile": REPLAY_PROFILE,
         "log_warnings": list(report.warnings),
     }
     moving = [s for s in steps if not s.new_cycle]
