@@ -91,16 +91,23 @@ class StabConfig(Validated):
 class MatchConfig(Validated):
     """Template matching (paper 2.4) and its quality gates.
 
-    ``psr_min``: peak-to-sidelobe ratio of the SSD surface below which a match is invalid; ``texture_std_min``:
-    minimum intensity standard deviation (0-255 scale) of the template; ``sidelobe_exclude_px``: half-width of the
-    window around the peak excluded from the sidelobe statistics.
+    ``method``: ``"window"`` searches the positions the cycle's step gate can accept around the predicted position
+    (``cycle.step_gate_px``, rounded up) and ``window_margin_px`` more either side (the peak's neighbourhood and
+    sidelobe), and widens to the whole base image on a miss (the minimum in that margin, a low or ambiguous peak)
+    or when there is no prediction (a cycle without a step to predict from, or the gate off); ``"exhaustive"``
+    always searches the
+    whole base image; ``"three_step"`` and ``"diamond"`` are the classic block-matching searches
+    (:mod:`gsoe.matching`).  ``psr_min``: peak-to-sidelobe ratio of the SSD surface below which a match is invalid;
+    ``texture_std_min``: minimum intensity standard deviation (0-255 scale) of the template;
+    ``sidelobe_exclude_px``: half-width of the window around the peak excluded from the sidelobe statistics.
     """
 
-    method: Literal["exhaustive", "three_step", "diamond"] = "exhaustive"
+    method: Literal["window", "exhaustive", "three_step", "diamond"] = "window"
     subpixel: bool = True
     psr_min: Annotated[float, In(0.0, 1e3)] = 3.0
     texture_std_min: Annotated[float, In(0.0, 255.0)] = 4.0
     sidelobe_exclude_px: Annotated[int, In(0, 50)] = 2
+    window_margin_px: Annotated[int, In(1, 100)] = 4
 
 
 @dataclass(frozen=True)

@@ -124,6 +124,10 @@ class GsoeEstimator:
         self._featureless_retry_us = int(round(cfg.cycle.featureless_retry_s * US_PER_S))
         self._view = s.roi_centre == "view"
         self._per_second = cfg.cycle.step_prediction == "per_second"
+        # "window" matching: the positions the step gate can accept around the predicted one (the matcher adds
+        # its margin); without the gate the whole base image is searched
+        self._window_radius = (math.ceil(cfg.cycle.step_gate_px)
+                               if cfg.match.method == "window" and cfg.cycle.step_gate_px > 0 else None)
         # "view" mode: the last valid step as a rate, rotated to north/east (px/s), for predicting the template's
         # position across cycles that measured nothing (the gates never use it)
         self._last_rate_ne: tuple[float, float] | None = None
@@ -227,15 +231,20 @@ class GsoeEstimator:
         if not tpl.valid:
             return [self._step(t_us, c, c.last_xy, _NO_QUALITY, False, yaw_now, rel)] + self._restart(
                 t_us, image, att, height_agl_m, c)
+        # the step the gates compare with; "window" matching searches where they can accept a match
+        prev = exp_last if exp_last is not None else exp_carried
+        radius = self._window_radius if prev is not None else None
         if self._view:
+            # the template was cut where the prediction puts the base's anchor: it lands there, give or take
             start = (self.ref_uv[0] + c.anchor[1], self.ref_uv[1] - c.anchor[0])
-            res = match_template(c.base_image, tpl.image, self.cfg.match, start)
+            res = match_template(c.base_image, tpl.image, self.cfg.match, start, radius)
             xy = (res.x_px + c.offset_b[1] - off_k[1], res.y_px - c.offset_b[0] + off_k[0])
         else:
-            res = match_template(c.base_image, tpl.image, self.cfg.match, pred)
+            if radius is not None and prev is not None:
+                pred = (c.last_xy[0] + prev[0], c.last_xy[1] + prev[1])
+            res = match_template(c.base_image, tpl.image, self.cfg.match, pred, radius)
             xy = (res.x_px, res.y_px)
         step_xy = (xy[0] - c.last_xy[0], xy[1] - c.last_xy[1])
-        prev = exp_last if exp_last is not None else exp_carried
         cc = self.cfg.cycle
         filtered = prev is not None and (
             (cc.data_filter and data_filter_fires(prev, step_xy, cc.data_filter_zeta_px))

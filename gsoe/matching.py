@@ -7,11 +7,18 @@ Coordinates
 
 Similarity
     The sum of squared differences (paper eq. 5) of the template against every candidate position;
-    ``"exhaustive"`` evaluates it everywhere with one ``cv2.matchTemplate(..., TM_SQDIFF)`` call on float32,
-    ``"three_step"`` and ``"diamond"`` are the classic block-matching searches that evaluate it only at their
-    candidate positions (one ``cv2.norm`` per candidate, memoised), starting at ``start_xy``.  On sharp imagery
-    the SSD valley is about 1 px wide and these local searches are sometimes captured by a nearby local minimum
-    (three-step 0-7 %, diamond 0-10 % of templates on the test textures when started within 3 px).
+    ``"exhaustive"`` evaluates it everywhere with one ``cv2.matchTemplate(..., TM_SQDIFF)`` call on float32;
+    ``"window"`` (matching where the motion is) evaluates it only on the positions within ``radius_px`` of the
+    predicted position ``start_xy`` plus ``cfg.window_margin_px`` either side (the cycle passes its step gate's
+    reach: 13 x 13 of the paper geometry's 103 x 55 positions), and widens to the exhaustive search on a miss: a
+    minimum in the margin, a low or ambiguous peak on the window's surface (whose sidelobe is then the window
+    outside the excluded one, so the PSR is a local one, 1.2-1.5 times the whole surface's on the simulator's
+    frames), or no prediction.  A window without the true match holds a match passing the gates in 1.3 % of cases
+    on the test tiles; the step gate stands behind it.  ``"three_step"`` and ``"diamond"`` are the classic
+    block-matching searches that evaluate it only at their candidate positions (one ``cv2.norm`` per candidate,
+    memoised), starting at ``start_xy``.  On sharp imagery the SSD valley is about 1 px wide and these local
+    searches are sometimes captured by a nearby local minimum (three-step 0-7 %, diamond 0-10 % of templates on the
+    test textures when started within 3 px).
 
 Sub-pixel refinement (``cfg.subpixel``)
     Two stages, both minimising the same SSD over continuous shifts.  (1) A least-squares 2-D quadratic
@@ -362,7 +369,7 @@ def _diamond(probe: _SsdProbe, start: tuple[int, int]) -> tuple[int, int]:
 
 
 def match_template(base: NDArray, template: NDArray, cfg: MatchConfig,
-                   start_xy: tuple[float, float] | None = None) -> MatchResult:
+                   start_xy: tuple[float, float] | None = None, radius_px: int | None = None) -> MatchResult:
     """Find ``template`` in ``base`` by SSD (paper eq. 5) with the search method ``cfg.method``.
 
     Parameters
@@ -373,9 +380,13 @@ def match_template(base: NDArray, template: NDArray, cfg: MatchConfig,
     cfg
         Method, sub-pixel switch and quality gates.
     start_xy
-        Where the searches (``"three_step"``, ``"diamond"``) start: the expected template centre (column, row) in
-        base pixels, rounded to the nearest position and clipped into the search surface; default the base
-        image's centre.  Ignored by ``"exhaustive"``.
+        Where the searches start: the expected template centre (column, row) in base pixels, rounded to the
+        nearest position and clipped into the search surface; default the base image's centre.  For
+        ``"window"`` the centre of the window; ignored by ``"exhaustive"``.
+    radius_px
+        ``"window"`` only: how far (positions, either axis) from ``start_xy`` a match may lie; the window searched
+        is ``cfg.window_margin_px`` wider either side (the peak's neighbourhood and sidelobe), and a minimum in
+        that margin is a miss.  None (or no ``start_xy``): the whole surface.
 
     Returns
     -------
@@ -393,6 +404,8 @@ def match_template(base: NDArray, template: NDArray, cfg: MatchConfig,
             raise ValueError(f"start_xy: expected two numbers (x, y), got {start_xy!r}") from None
         if not (math.isfinite(sx) and math.isfinite(sy)):
             return _invalid(f"non-finite start_xy {start_xy!r}")
+    if radius_px is not None and not (isinstance(radius_px, int | np.integer) and radius_px >= 1):
+        raise ValueError(f"radius_px: expected an integer >= 1 or None, got {radius_px!r}")
     bh, bw = base.shape
     th, tw = template.shape
     if th == 0 or tw == 0 or bh == 0 or bw == 0:
@@ -404,44 +417,82 @@ def match_template(base: NDArray, template: NDArray, cfg: MatchConfig,
         return _invalid(f"template {template.shape} on base {base.shape}: search surface {nv}x{nu}, need 3x3")
     base32 = _as_float32(base)
     tpl32 = _as_float32(template)
-    if not (math.isfinite(float(base32.sum(dtype=np.float64))) and math.isfinite(float(tpl32.sum(dtype=np.float64)))):
+    tpl_sum = float(tpl32.sum(dtype=np.float64))
+    if not math.isfinite(tpl_sum):
         return _invalid("non-finite pixel values")
     tpl_std = texture_std(tpl32)
     exclude = cfg.sidelobe_exclude_px
     floor = th * tw * SSD_FLOOR_PER_PX
 
-    if cfg.method == "exhaustive":
-        surface = cv2.matchTemplate(base32, tpl32, cv2.TM_SQDIFF)
-        _, ssd_max, (iu, iv), _ = cv2.minMaxLoc(surface)
-        lu, lv = iu, iv
-    else:
-        probe = _SsdProbe(base32, tpl32)
-        if start_xy is None:
-            start = ((nu - 1) // 2, (nv - 1) // 2)
-        else:
-            start = (min(max(round(sx - (tw - 1) / 2.0), 0), nu - 1), min(max(round(sy - (th - 1) / 2.0), 0), nv - 1))
-        iu, iv = _three_step(probe, start) if cfg.method == "three_step" else _diamond(probe, start)
-        # Local window around the optimum: its ring gives the local PSR, its centre the 3x3 neighbourhood.  The
-        # optimum is first walked downhill over its 8 neighbours so that the refinement starts at a local minimum.
-        r = exclude + LOCAL_RING_PX
-        for _ in range(_MAX_POLISH_MOVES + 1):
-            u0, v0 = max(iu - r, 0), max(iv - r, 0)
-            u1, v1 = min(iu + r, nu - 1), min(iv + r, nv - 1)
-            surface = cv2.matchTemplate(base32[v0:v1 + th, u0:u1 + tw], tpl32, cv2.TM_SQDIFF)
-            lu, lv = iu - u0, iv - v0
-            nb = surface[max(lv - 1, 0):lv + 2, max(lu - 1, 0):lu + 2]
-            mv, mu = divmod(int(np.argmin(nb)), nb.shape[1])
-            if nb[mv, mu] >= surface[lv, lu]:
-                break
-            iu, iv = max(lu - 1, 0) + mu + u0, max(lv - 1, 0) + mv + v0
+    if cfg.method == "window" and start_xy is not None and radius_px is not None:
+        cu, cv_ = _clipped_start(sx, sy, tw, th, nu, nv)
+        r = radius_px + cfg.window_margin_px
+        u0, v0 = max(cu - r, 0), max(cv_ - r, 0)
+        u1, v1 = min(cu + r, nu - 1), min(cv_ + r, nv - 1)
+        if (u1 - u0 + 1) * (v1 - v0 + 1) < nu * nv:
+            res = _match_in(base32, tpl32, u0, v0, u1, v1, tpl_std, cfg, floor)
+            # a template without texture is invalid wherever it is searched; a miss (a minimum farther than
+            # radius_px from the start, a low or ambiguous peak, bad data) widens to the whole surface
+            if tpl_std < cfg.texture_std_min:
+                return res
+            if res.quality.valid and (abs(res.x_px - (tw - 1) / 2.0 - cu) <= radius_px + 0.5
+                                      and abs(res.y_px - (th - 1) / 2.0 - cv_) <= radius_px + 0.5):
+                return res
+    if cfg.method in ("exhaustive", "window"):
+        return _match_in(base32, tpl32, 0, 0, nu - 1, nv - 1, tpl_std, cfg, floor)
+    if not math.isfinite(float(base32.sum(dtype=np.float64))):
+        return _invalid("non-finite pixel values")
+    probe = _SsdProbe(base32, tpl32)
+    start = ((nu - 1) // 2, (nv - 1) // 2) if start_xy is None else _clipped_start(sx, sy, tw, th, nu, nv)
+    iu, iv = _three_step(probe, start) if cfg.method == "three_step" else _diamond(probe, start)
+    # Local window around the optimum: its ring gives the local PSR, its centre the 3x3 neighbourhood.  The
+    # optimum is first walked downhill over its 8 neighbours so that the refinement starts at a local minimum.
+    r = exclude + LOCAL_RING_PX
+    for _ in range(_MAX_POLISH_MOVES + 1):
+        u0, v0 = max(iu - r, 0), max(iv - r, 0)
+        u1, v1 = min(iu + r, nu - 1), min(iv + r, nv - 1)
+        surface = cv2.matchTemplate(base32[v0:v1 + th, u0:u1 + tw], tpl32, cv2.TM_SQDIFF)
         lu, lv = iu - u0, iv - v0
-        ssd_max = cv2.minMaxLoc(surface)[1]
+        nb = surface[max(lv - 1, 0):lv + 2, max(lu - 1, 0):lu + 2]
+        mv, mu = divmod(int(np.argmin(nb)), nb.shape[1])
+        if nb[mv, mu] >= surface[lv, lu]:
+            break
+        iu, iv = max(lu - 1, 0) + mu + u0, max(lv - 1, 0) + mv + v0
+    on_border = iu == 0 or iv == 0 or iu == nu - 1 or iv == nv - 1
+    return _result(base32, tpl32, surface, u0, v0, iu - u0, iv - v0, on_border, cv2.minMaxLoc(surface)[1], tpl_std,
+                   cfg, floor)
 
+
+def _clipped_start(sx: float, sy: float, tw: int, th: int, nu: int, nv: int) -> tuple[int, int]:
+    """The surface position (template top-left) nearest the template centre ``(sx, sy)``, clipped into it."""
+    return min(max(round(sx - (tw - 1) / 2.0), 0), nu - 1), min(max(round(sy - (th - 1) / 2.0), 0), nv - 1)
+
+
+def _match_in(base32: NDArray[np.float32], tpl32: NDArray[np.float32], u0: int, v0: int, u1: int, v1: int,
+              tpl_std: float, cfg: MatchConfig, floor: float) -> MatchResult:
+    """The SSD surface over the template positions ``u0..u1`` x ``v0..v1`` (inclusive), its minimum and quality; a
+    minimum on the edge of that window is on the border (the true one may lie outside)."""
+    th, tw = tpl32.shape
+    region = base32[v0:v1 + th, u0:u1 + tw]
+    if not math.isfinite(float(region.sum(dtype=np.float64))):
+        return _invalid("non-finite pixel values")
+    surface = cv2.matchTemplate(region, tpl32, cv2.TM_SQDIFF)
+    _, ssd_max, (lu, lv), _ = cv2.minMaxLoc(surface)
+    on_border = lu == 0 or lv == 0 or lu == u1 - u0 or lv == v1 - v0
+    return _result(base32, tpl32, surface, u0, v0, lu, lv, on_border, ssd_max, tpl_std, cfg, floor)
+
+
+def _result(base32: NDArray[np.float32], tpl32: NDArray[np.float32], surface: NDArray, u0: int, v0: int,
+            lu: int, lv: int, on_border: bool, ssd_max: float, tpl_std: float, cfg: MatchConfig,
+            floor: float) -> MatchResult:
+    """Quality gates and sub-pixel refinement of the minimum at ``(lu, lv)`` of ``surface``, whose position (0, 0)
+    is the template position ``(u0, v0)`` on the base."""
+    th, tw = tpl32.shape
+    iu, iv = lu + u0, lv + v0
     ssd_min = float(surface[lv, lu])
     if not (math.isfinite(ssd_max) and math.isfinite(ssd_min)):
         return _invalid("SSD overflow (pixel values far outside the 0-255 scale)")
-    psr, gap = _log_psr_and_gap(surface, lu, lv, exclude, floor)
-    on_border = iu == 0 or iv == 0 or iu == nu - 1 or iv == nv - 1
+    psr, gap = _log_psr_and_gap(surface, lu, lv, cfg.sidelobe_exclude_px, floor)
     valid = (not on_border) and psr >= cfg.psr_min and tpl_std >= cfg.texture_std_min and gap >= AMBIGUITY_MIN_GAP
     # off the border the minimum has its full 3x3 neighbourhood (the local searches' window keeps a ring round it)
     n3 = surface[lv - 1:lv + 2, lu - 1:lu + 2] if not on_border else None
