@@ -5,7 +5,7 @@
     frames rendered in its own process, GNSS lost after ``--outage-after-s`` so the estimate is optical) pinned to
     one core, and runs the companion (real optical estimator + EKF + link) in this process pinned to another core,
     against it over MAVLink on 127.0.0.1.  Prints the per-frame latency from frame capture (the frame read from
-    the camera stream) to outputs sent (the MAVSDK send of the VISION_SPEED_ESTIMATE completed), median and 95th
+    the camera stream) to outputs sent (the MAVSDK send of the velocity message completed), median and 95th
     percentile, and to outputs handed to the link; the companion's CPU use (user + system time over wall time,
     all its threads: MAVSDK, camera reader, estimators) as a fraction of its one core; its peak resident memory.
 
@@ -233,7 +233,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"frames processed: {r['frames']} in {r['wall_s']:.1f} s ({r['frame_rate_hz']:.1f} Hz), optical steps: "
               f"{r['steps']}, estimates sent: {r['outputs_sent']}, withheld: {r['outputs_suppressed']}")
         if ls.get("n"):
-            print(f"latency capture -> VISION_SPEED_ESTIMATE sent: median {ls['median']:.2f} ms, "
+            print(f"latency capture -> velocity message sent: median {ls['median']:.2f} ms, "
                   f"p95 {ls['p95']:.2f} ms, max {ls['max']:.2f} ms ({ls['n']} sends)")
         if hs.get("n"):
             print(f"latency capture -> outputs handed to the link: median {hs['median']:.2f} ms, "

@@ -48,12 +48,13 @@ reason is returned and logged): drift and ATA as NAMED_VALUE_FLOAT (``GSOE_DRIFT
 DEBUG_VECT ``GSOE`` (x drift deg, y ATA deg, z quality), through ``MavlinkDirect``; ground velocity for the
 autopilot's EKF as one of (``velocity_message``, :func:`encode_velocity`):
 
-- ``vision_position_delta``: VISION_POSITION_DELTA, the ground velocity in the body frame (FRD) times the time since
-  the last one.  The heading-aligned velocity (ground speed along the drift angle, what the optical migration
-  measures) is put into the body frame with the AHRS roll and pitch only, so it carries no heading: ArduPilot's EKF3
-  fuses it as body-frame odometry with its own attitude (its heading stays the compass's and IMU's).  Its noise is
-  ArduPilot's ``EK3_VIS_VERR_MIN + (EK3_VIS_VERR_MAX - EK3_VIS_VERR_MIN) (1 - confidence / 100)``: the confidence
-  sent makes that the estimate's sigma (``ap_vis_verr_*_m_s`` must mirror the autopilot's parameters).
+- ``vision_position_delta`` (the default): VISION_POSITION_DELTA, the ground velocity in the body frame (FRD) times
+  the time since the last one.  The heading-aligned velocity (ground speed along the drift angle, what the optical
+  migration measures) is put into the body frame with the AHRS roll and pitch only, so it carries no heading:
+  ArduPilot's EKF3 fuses it as body-frame odometry with its own attitude (its heading stays the compass's and
+  IMU's).  Its noise is ArduPilot's ``EK3_VIS_VERR_MIN + (EK3_VIS_VERR_MAX - EK3_VIS_VERR_MIN) (1 - confidence /
+  100)``: the confidence sent makes that the estimate's sigma (``ap_vis_verr_*_m_s`` must mirror the autopilot's
+  parameters).
 - ``vision_speed_estimate``: VISION_SPEED_ESTIMATE, the north/east/down velocity with its 3x3 covariance (through
   MAVSDK ``mocap``); ArduPilot fuses it with ``VISO_VEL_M_NSE``, not the covariance.  North/east are made with the
   autopilot's own yaw (less the estimated yaw bias), so it returns the autopilot's heading to it.
@@ -203,7 +204,7 @@ class LinkConfig(Validated):
     component_id: _MavlinkId = MAV_COMP_ID_ONBOARD_COMPUTER
     autopilot_system_id: Annotated[int, In(0, 255)] = 0
     autopilot_component_id: Annotated[int, In(0, 255)] = 0
-    velocity_message: Literal["vision_position_delta", "vision_speed_estimate", "odometry"] = "vision_speed_estimate"
+    velocity_message: Literal["vision_position_delta", "vision_speed_estimate", "odometry"] = "vision_position_delta"
     ap_vis_verr_min_m_s: Annotated[float, In(0.0, 100.0, lo_open=True)] = 0.1
     ap_vis_verr_max_m_s: Annotated[float, In(0.0, 100.0, lo_open=True)] = 0.5
     request_rates: bool = True
@@ -570,6 +571,18 @@ def _field(f: dict[str, Any], name: str) -> float:
     return math.nan if v is None else float(v)
 
 
+def fields_json(fields: dict[str, Any]) -> str:
+    """Message fields as MAVSDK's JSON: NaN (MAVLink's "unknown") as null, which MAVSDK reads back as NaN (its
+    parser refuses a bare NaN, and the whole message with it)."""
+    def clean(v: Any) -> Any:
+        if isinstance(v, float) and math.isnan(v):
+            return None
+        if isinstance(v, list):
+            return [clean(x) for x in v]
+        return v
+    return json.dumps({k: clean(v) for k, v in fields.items()}, allow_nan=False)
+
+
 def rates_text(granted: dict[str, tuple[str, float]]) -> str:
     """The STATUSTEXT telling what rates the autopilot granted, e.g. ``GSOE Hz ATT 40 IMU 40 BARO 10 ...``
     (``granted``: kind -> (message, Hz); 0 Hz: none granted)."""
@@ -889,7 +902,9 @@ class TelemetryGuard:
             return None
         if sats == 255:  # UINT8_MAX: unknown
             sats = 0
-        t = self._stamp("gnss", vehicle_us)
+        # without a fix ArduPlane keeps sending GPS_RAW_INT with its last fix's time_usec (frozen): such a report
+        # carries the newest autopilot stamp, so that the loss reaches the GNSS monitor as what it is
+        t = self._stamp("gnss", vehicle_us if fix >= GPS_FIX_TYPE_3D else 0)
         if t is None:
             return None
         nan = math.nan
@@ -1174,7 +1189,7 @@ class CompanionLink:
             return
         from mavsdk.asyncio.plugins.mavlink_direct import MavlinkMessage
         msg = MavlinkMessage(message_name=name, system_id=0, component_id=0, target_system_id=self.target_system,
-                             target_component_id=self.target_component, fields_json=json.dumps(fields))
+                             target_component_id=self.target_component, fields_json=fields_json(fields))
         await self._direct.send_message(msg)
 
     def _submit(self, key: str, coro: Any, since_us: int | None = None) -> None:

@@ -135,8 +135,8 @@ BAD_ACCEL_MG = 32000          # 32 g
 FAULT_KINDS = ("frozen_frames", "black_frames", "saturated_frames", "wrong_size_frames", "corrupt_frames",
                "corrupt_stream", "camera_off", "link_silence", "bad_telemetry", "time_backwards", "gnss_jump",
                "mavlink_fuzz")
-OUTPUT_TYPES = ("NAMED_VALUE_FLOAT", "VISION_SPEED_ESTIMATE", "WIND_COV", "WIND", "STATUSTEXT", "COMMAND_LONG",
-                "DEBUG_VECT")
+OUTPUT_TYPES = ("NAMED_VALUE_FLOAT", "VISION_SPEED_ESTIMATE", "VISION_POSITION_DELTA", "ODOMETRY", "WIND_COV", "WIND",
+                "STATUSTEXT", "COMMAND_LONG", "DEBUG_VECT")
 
 
 @dataclass(frozen=True)
@@ -460,6 +460,21 @@ def received_problems(msg: dict[str, Any]) -> list[str]:
             out.append(f"speed out of range {vals}")
         elif len(cov) == 9 and float(np.min(np.linalg.eigvalsh(np.array(cov).reshape(3, 3)))) < -1e-9:
             out.append("covariance not positive semi-definite")
+    elif kind == "VISION_POSITION_DELTA":
+        dt = float(msg.get("time_delta_usec", 0)) / 1e6
+        pd = list(msg.get("position_delta", []))
+        conf = msg.get("confidence", math.nan)
+        if not (_finite(*pd, conf) and len(pd) == 3 and dt > 0.0):
+            out.append(f"VISION_POSITION_DELTA {pd!r} dt {dt!r} confidence {conf!r}")
+        elif math.hypot(float(pd[0]), float(pd[1])) / dt > MAX_SPEED_M_S or not 0.0 <= float(conf) <= 100.0:
+            out.append(f"VISION_POSITION_DELTA out of range {pd!r} dt {dt!r} confidence {conf!r}")
+    elif kind == "ODOMETRY":
+        vel = [msg.get(k, math.nan) for k in ("vx", "vy", "vz")]
+        q = list(msg.get("q", []))
+        if not (_finite(*vel, *q) and len(q) == 4) or abs(math.hypot(*(float(v) for v in q)) - 1.0) > 1e-3:
+            out.append(f"ODOMETRY velocity {vel!r} q {q!r}")
+        elif math.hypot(float(vel[0]), float(vel[1])) > MAX_SPEED_M_S:
+            out.append(f"ODOMETRY speed out of range {vel!r}")
     elif kind == "WIND":
         d, s, sz = (msg.get(k, math.nan) for k in ("direction", "speed", "speed_z"))
         if not _finite(d, s, sz) or not (0.0 <= float(d) < 360.0 and 0.0 <= float(s) <= MAX_SPEED_M_S):

@@ -24,6 +24,10 @@ fields hold only about a metre), down from the ground's altitude, ``--ground-ams
 dialect) is used when ``SIM_STATE`` does not come; it has no velocity, which only the motion blur of the exposure
 needs.
 
+Experiment hook: ``--oracle-velocity-hz HZ`` also sends ArduPlane the truth's own body-frame ground velocity as
+VISION_POSITION_DELTA at that rate (confidence ``--oracle-confidence``), what a perfect companion would send: the
+floor of what ArduPlane's EKF makes of a body-frame velocity (:mod:`sim.sitl_mission` ``--oracle``).
+
 A frame is rendered for the first truth sample at or after each ``1 / --frame-hz`` of the autopilot's clock; a
 truth sample older than ``--max-lag-s`` of wall-clock time when it is read (the bridge fell behind) is skipped, so a
 slow renderer drops frames rather than lagging.  ``--truth-log DIR`` writes every truth sample to ``DIR/truth.csv``
@@ -183,7 +187,8 @@ class SitlCamera:
     def __init__(self, url: str, server: FrameServer, *, frame_hz: float = 20.0, truth_hz: float = 40.0,
                  texture: str = DEFAULT_TEXTURE, seed: int = 0, config_path: str | None = None,
                  ground_amsl_m: float | None = None, max_lag_s: float = 0.25, truth_log_dir: str | None = None,
-                 noise_std: float = CAMERA_NOISE_STD) -> None:
+                 noise_std: float = CAMERA_NOISE_STD, oracle_velocity_hz: float = 0.0,
+                 oracle_confidence: int = 100) -> None:
         self.url = url
         self.server = server
         self.frame_period_us = round(1e6 / frame_hz)
@@ -202,6 +207,10 @@ class SitlCamera:
         self._next_frame_us: int | None = None
         self._last_alt = math.nan
         self._stop = False
+        self._conn: Any = None
+        self.oracle_period_us = round(1e6 / oracle_velocity_hz) if oracle_velocity_hz > 0 else 0
+        self.oracle_confidence = oracle_confidence
+        self._oracle_last_us: int | None = None
         self.granted: dict[str, float] = {}
         self.counts = {"truth": 0, "frames": 0, "skipped_late": 0, "render_s": 0.0}
 
@@ -229,7 +238,7 @@ class SitlCamera:
         return conn
 
     def run(self, duration_s: float | None = None) -> dict[str, Any]:
-        conn = self.connect()
+        conn = self._conn = self.connect()
         start = time.monotonic()
         try:
             while not self._stop and (duration_s is None or time.monotonic() - start < duration_s):
@@ -269,6 +278,8 @@ class SitlCamera:
             self.frame = LocalFrame(s.lat_deg, s.lon_deg, ground)
             log.info("local frame at %.7f, %.7f, ground %.2f m AMSL", s.lat_deg, s.lon_deg, ground)
         self.counts["truth"] += 1
+        if self.oracle_period_us:
+            self._oracle(s)
         if self.truth_log is not None:
             self.truth_log.write("truth", truth_record(s, self.frame))
         if self._next_frame_us is not None and s.t_us < self._next_frame_us:
@@ -289,6 +300,23 @@ class SitlCamera:
         self.counts["frames"] += 1
 
 
+    def _oracle(self, s: SitlTruth) -> None:
+        """The truth's body-frame ground velocity as VISION_POSITION_DELTA (module docstring)."""
+        last = self._oracle_last_us
+        if last is not None and s.t_us - last < self.oracle_period_us:
+            return
+        self._oracle_last_us = s.t_us
+        if last is None or not np.all(np.isfinite(s.vel_ned_m_s)):
+            return
+        from gsoe.rotation import R_nb_from_euler
+
+        dt_us = s.t_us - last
+        v_b = R_nb_from_euler(s.roll_rad, s.pitch_rad, s.yaw_rad).T @ s.vel_ned_m_s
+        self._conn.mav.vision_position_delta_send(s.t_us, dt_us, [0.0, 0.0, 0.0],
+                                                  [float(v) * dt_us / 1e6 for v in v_b], float(self.oracle_confidence))
+        self.counts["oracle_sent"] = self.counts.get("oracle_sent", 0) + 1
+
+
 def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--connect", default="tcp:127.0.0.1:5762",
                     help="pymavlink URL of the SITL (default: its SERIAL2, tcp:127.0.0.1:5762)")
@@ -303,6 +331,9 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--truth-log", help="write truth.csv (every truth sample) to this folder")
     ap.add_argument("--duration-s", type=float, help="stop after this long (default: until stopped)")
     ap.add_argument("--port-file", help="write the frame port to this file once listening")
+    ap.add_argument("--oracle-velocity-hz", type=float, default=0.0,
+                    help="experiment: send the truth's body-frame velocity (VISION_POSITION_DELTA) at this rate")
+    ap.add_argument("--oracle-confidence", type=int, default=100, help="its confidence (0-100)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -315,7 +346,8 @@ def run(args: argparse.Namespace) -> int:
         os.replace(tmp, args.port_file)
     bridge = SitlCamera(args.connect, server, frame_hz=args.frame_hz, truth_hz=args.truth_hz, texture=args.texture,
                         seed=args.seed, config_path=args.config, ground_amsl_m=args.ground_amsl_m,
-                        max_lag_s=args.max_lag_s, truth_log_dir=args.truth_log)
+                        max_lag_s=args.max_lag_s, truth_log_dir=args.truth_log,
+                        oracle_velocity_hz=args.oracle_velocity_hz, oracle_confidence=args.oracle_confidence)
 
     def _term(signum: int, _frame: object) -> None:
         bridge.request_stop()

@@ -11,7 +11,7 @@ stopped by its own id at the end, the whole flight bounded in time:
    over TCP), SERIAL1 ``udpclient`` to the companion, SERIAL2 for the camera bridge;
 2. the camera bridge (:mod:`sim.sitl_camera`: the belly camera rendered from ArduPlane's SIM_STATE truth) and the
    companion (``gsoe companion --connect udpin://... --camera sim://...``, the SITL plane's airframe in
-   ``[ekf]``: :data:`SITL_AIRFRAME`);
+   ``[ekf]``: :data:`SITL_AIRFRAME`, and :data:`SITL_COMPANION`);
 3. a mission: take-off to ``alt_m`` above home, then a racetrack (``leg_m`` x ``width_m``, laps repeated with
    DO_JUMP); arm, AUTO;
 4. ``gnss_on_s`` after take-off (the plane above ``takeoff_done_m``) the GNSS goes off (``SIM_GPS1_ENABLE 0``) and,
@@ -84,12 +84,24 @@ LIFTOFF_M = 2.0               # truth height over the ground that counts as airb
 SITL_AIRFRAME = {"ekf.airframe_mass_kg": 2.0, "ekf.airframe_wing_area_m2": 0.45,
                  "ekf.sideslip_side_force_coef_per_rad": -0.98, "ekf.air_density_kg_m3": 1.225,
                  "ekf.aoa_lift_slope_per_rad": 6.9, "ekf.aoa_lift_coef_zero": 0.56}
+#: what the companion assumes of this autopilot's sensors, measured in these flights:
+#: - ArduPlane SITL's pitot, made true with the baro's air density, is exact (EAS / TAS 0.9351 against the
+#:   density's 0.9351): with the default 3 % scale uncertainty the GNSS-denied EKF traded the optical scale (its
+#:   height) against the pitot's, 2.9 m low and +1.9 % after 600 s, a 1.4 % along-track velocity error;
+#: - ArduPlane's heading without GNSS wanders (3-5 deg either way over a lap, even fed a perfect velocity), and
+#:   the companion's heading is ArduPlane's less its yaw-bias estimate: with the default walk (0.002 deg/sqrt(s)) the
+#:   estimate stayed at its GNSS-on value and the wander came back through the wind as a velocity error
+#:   (600 s: 252 m with it, 199 m with 0.05 deg/sqrt(s); 0.2 did no better)
+SITL_COMPANION = {"ekf.init_tas_scale_sigma": 0.002, "ekf.yaw_bias_rw_deg_per_rt_s": 0.05}
 #: what the harness asks for on its own link (SERIAL0), Hz
 HARNESS_RATES = {"SIM_STATE": 10.0, "ATTITUDE": 10.0, "GLOBAL_POSITION_INT": 10.0, "EKF_STATUS_REPORT": 2.0,
                  "GPS_RAW_INT": 2.0, "VFR_HUD": 2.0}
 MSG_IDS = {"SIM_STATE": 108, "ATTITUDE": 30, "GLOBAL_POSITION_INT": 33, "EKF_STATUS_REPORT": 193, "GPS_RAW_INT": 24,
            "VFR_HUD": 74}
 COMPANION_COMPONENT = 191
+RC_MID_PWM = 1500             # RC7 in the middle: EKF source set 2 (RC7_OPTION 90)
+RC_OVERRIDE_IGNORE = 65535    # RC_CHANNELS_OVERRIDE: leave this channel alone
+RC_OVERRIDE_PERIOD_S = 0.5
 
 
 @dataclass(frozen=True)
@@ -113,6 +125,10 @@ class MissionSpec:
     vis_verr_min_m_s: float = 0.1
     vis_verr_max_m_s: float = 0.5
     companion_settings: tuple[str, ...] = ()
+    oracle_confidence: int = -1  # >= 0: experiment, the bridge sends the truth's body velocity (sim.sitl_camera)
+    source_switch: str = "command"  # "command": MAV_CMD_SET_EKF_SOURCE_SET; "rc": RC7 (RC7_OPTION 90) to mid
+    ap_params: tuple[tuple[str, float], ...] = ()  # more ArduPlane parameters (experiments; override the above)
+    route: str = "racetrack"  # "racetrack": laps of leg_m x width_m; "transit": a straight line away from home
     timeout_factor: float = 3.0  # the flight is given up after this many times its nominal wall-clock length
 
     @property
@@ -140,14 +156,16 @@ def sitl_parameters(spec: MissionSpec) -> dict[str, float]:
         "EK3_SRC2_POSZ": 1,                # ... baro height ...
         "EK3_SRC2_VELZ": 0,                # ... no vertical velocity ...
         "EK3_SRC2_YAW": 1,                 # ... compass heading
+        "RC7_OPTION": 90,                  # RC7 low/middle/high: EKF source set 1/2/3
+        **dict(spec.ap_params),
     }
 
 
 def companion_settings(spec: MissionSpec) -> list[str]:
     """The companion's ``--set`` overrides for the flight."""
-    out = [f"{k}={v}" for k, v in SITL_AIRFRAME.items()]
+    out = [f"{k}={v}" for k, v in {**SITL_AIRFRAME, **SITL_COMPANION}.items()]
     out += [f'companion.link.velocity_message="{spec.velocity_message}"',
-            f"companion.link.vision_speed={'true' if spec.extnav else 'false'}",
+            f"companion.link.vision_speed={'true' if spec.extnav and spec.oracle_confidence < 0 else 'false'}",
             f"companion.link.ap_vis_verr_min_m_s={spec.vis_verr_min_m_s}",
             f"companion.link.ap_vis_verr_max_m_s={spec.vis_verr_max_m_s}"]
     return out + list(spec.companion_settings)
@@ -163,6 +181,14 @@ def ne_of(lat_deg: Any, lon_deg: Any, lat0_deg: float, lon0_deg: float) -> tuple
 def lat_lon_of(n_m: float, e_m: float, lat0_deg: float, lon0_deg: float) -> tuple[float, float]:
     return (lat0_deg + math.degrees(n_m / EARTH_RADIUS_M),
             lon0_deg + math.degrees(e_m / (EARTH_RADIUS_M * math.cos(math.radians(lat0_deg)))))
+
+
+def route_points(spec: MissionSpec) -> tuple[list[tuple[float, float]], bool]:
+    """The mission's waypoints after the take-off (north, east from home, m) and whether they repeat (DO_JUMP)."""
+    if spec.route == "transit":
+        psi = math.radians(HOME[3])
+        return [(d * math.cos(psi), d * math.sin(psi)) for d in (1000.0, 10000.0, 20000.0, 30000.0)], False
+    return racetrack(spec), True
 
 
 def racetrack(spec: MissionSpec) -> list[tuple[float, float]]:
@@ -351,6 +377,11 @@ class GroundStation:
                     return abs(m.param_value - value) < 1e-3 * max(1.0, abs(value))
         return False
 
+    def rc7_override(self, pwm: int) -> None:
+        ignore = RC_OVERRIDE_IGNORE
+        self.conn.mav.rc_channels_override_send(self.conn.target_system, 1, ignore, ignore, ignore, ignore, ignore,
+                                                ignore, pwm, ignore)
+
     def request_rates(self, rates: dict[str, float]) -> None:
         for name, hz in rates.items():
             self.command(MAV_CMD_SET_MESSAGE_INTERVAL, MSG_IDS[name], 1e6 / hz)
@@ -360,9 +391,11 @@ class GroundStation:
         lat0, lon0 = HOME[0], HOME[1]
         items: list[tuple[int, float, float, float, float]] = [(ml.MAV_CMD_NAV_WAYPOINT, 0, 0, 0, 0)]
         items.append((ml.MAV_CMD_NAV_TAKEOFF, 15.0, 0, 0, spec.alt_m))
-        for n, e in racetrack(spec):
+        points, repeat = route_points(spec)
+        for n, e in points:
             items.append((ml.MAV_CMD_NAV_WAYPOINT, 0, n, e, spec.alt_m))
-        items.append((ml.MAV_CMD_DO_JUMP, 2, -1, 0, 0))
+        if repeat:
+            items.append((ml.MAV_CMD_DO_JUMP, 2, -1, 0, 0))
         ts = self.conn.target_system
         self.conn.mav.mission_count_send(ts, 1, len(items), 0)
         end = time.monotonic() + 30.0
@@ -398,8 +431,7 @@ def fly_mission(spec: MissionSpec, out_dir: Path, seed: int = 0) -> dict[str, An
     if not ARDUPLANE.exists():
         raise FileNotFoundError(ARDUPLANE)
     out_dir.mkdir(parents=True, exist_ok=True)
-    rng = np.random.default_rng(seed)
-    inst = free_instance(rng)
+    inst = free_instance(np.random.default_rng([seed, os.getpid()]))  # flights at once: other ports
     serial0 = SERIAL0_TCP_BASE + 10 * inst
     companion_udp = free_port(socket.SOCK_DGRAM)
     parm = out_dir / "mission.parm"
@@ -412,6 +444,8 @@ def fly_mission(spec: MissionSpec, out_dir: Path, seed: int = 0) -> dict[str, An
     port_file = out_dir / "bridge" / "frame_port"
     bridge_cmd = [PY, "-m", "sim.sitl_camera", "--frame-hz",
                   f"{spec.frame_hz:g}", "--port-file", str(port_file), "--seed", str(seed)]
+    if spec.oracle_confidence >= 0 and spec.extnav:
+        bridge_cmd += ["--oracle-velocity-hz", "10", "--oracle-confidence", str(spec.oracle_confidence)]
     wall_limit_s = spec.timeout_factor * (spec.flight_s / spec.speedup + 120.0)
     t_start = time.monotonic()
     runlog = RunLog(out_dir / "harness")
@@ -489,11 +523,18 @@ def _fly(gcs: GroundStation, spec: MissionSpec, runlog: RunLog, t_start: float, 
     if not gcs.set_param("SIM_GPS1_ENABLE", 0):
         raise RuntimeError("SIM_GPS1_ENABLE not set")
     runlog.write("events", {"t_us": gcs.t_us, "event": "gnss_off"})
-    if spec.extnav:
+    rc = spec.extnav and spec.source_switch == "rc"
+    if spec.extnav and not rc:
         r = gcs.command(MAV_CMD_SET_EKF_SOURCE_SET, 2)
         runlog.write("events", {"t_us": gcs.t_us, "event": f"source_set_2 ack {r}"})
+    elif rc:
+        runlog.write("events", {"t_us": gcs.t_us, "event": "source_set_2 rc7"})
     end = gcs.t_us + int(spec.denied_s * 1e6)
+    next_rc = 0.0
     while gcs.t_us < end:
+        if rc and time.monotonic() >= next_rc:  # an override lapses after RC_OVERRIDE_TIME: keep it up
+            gcs.rc7_override(RC_MID_PWM)
+            next_rc = time.monotonic() + RC_OVERRIDE_PERIOD_S
         gcs.pump()
         check_wall()
     runlog.write("events", {"t_us": gcs.t_us, "event": "end"})
@@ -640,6 +681,14 @@ def compare(with_extnav: dict[str, Any], dr_alone: dict[str, Any]) -> dict[str, 
             "improvement_factor": (eb / ea) if ea and eb else None}
 
 
+def _param(text: str) -> tuple[str, float]:
+    try:
+        name, value = text.split("=")
+        return name.strip().upper(), float(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected NAME=VALUE, got {text!r}") from None
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=float, default=600.0, help="GNSS-denied leg, autopilot seconds")
@@ -652,6 +701,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--viso-delay-ms", type=int, default=MissionSpec.viso_delay_ms)
     ap.add_argument("--viso-vel-m-nse", type=float, default=MissionSpec.viso_vel_m_nse)
     ap.add_argument("--set", action="append", default=[], dest="settings", help="companion --set override")
+    ap.add_argument("--oracle", type=int, default=-1, metavar="CONFIDENCE",
+                    help="experiment: the truth's body velocity instead of the companion's, at this confidence")
+    ap.add_argument("--source-switch", choices=("command", "rc"), default="command",
+                    help="switch to EKF source set 2 by MAV_CMD_SET_EKF_SOURCE_SET or by RC7 (RC7_OPTION 90)")
+    ap.add_argument("--param", action="append", default=[], type=_param, dest="ap_params",
+                    help="experiment: another ArduPlane parameter NAME=VALUE (repeatable)")
+    ap.add_argument("--route", choices=("racetrack", "transit"), default="racetrack",
+                    help="laps of a racetrack, or a straight line away from home")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="out/sitl_mission")
     args = ap.parse_args(argv)
@@ -659,7 +716,8 @@ def main(argv: list[str] | None = None) -> int:
     spec = MissionSpec(denied_s=args.duration, gnss_on_s=args.gnss_on_s, speedup=args.speedup,
                        velocity_message=args.velocity_message, extnav=not args.no_extnav,
                        viso_delay_ms=args.viso_delay_ms, viso_vel_m_nse=args.viso_vel_m_nse,
-                       companion_settings=tuple(args.settings))
+                       companion_settings=tuple(args.settings), oracle_confidence=args.oracle,
+                       source_switch=args.source_switch, ap_params=tuple(args.ap_params), route=args.route)
     out = Path(args.out)
     results: dict[str, Any] = {}
     results["extnav" if spec.extnav else "dr_alone"] = fly_mission(spec, out / ("extnav" if spec.extnav

@@ -21,7 +21,7 @@ import pytest
 from common.logio import read_log
 from nav.bench_companion import TRACKING_SETTINGS, guidance_figure, guidance_vehicle_args, sil_flight
 
-OUTPUT_KINDS = ("NAMED_VALUE_FLOAT", "VISION_SPEED_ESTIMATE", "WIND_COV", "WIND", "STATUSTEXT")
+OUTPUT_KINDS = ("NAMED_VALUE_FLOAT", "VISION_POSITION_DELTA", "WIND_COV", "WIND", "STATUSTEXT")
 WIND_TRUE = (8.0, 270.0)  # 8 m/s from the west (the vehicle's --wind-ned-m-s 0,8)
 
 
@@ -54,7 +54,7 @@ def test_estimate_keeps_flowing_through_the_gnss_outage_and_matches_the_truth(fl
     t_out = v["gnss_outage_start_s"]
     assert t_out is not None and 10.0 < t_out < v["t_s"] - 15.0
     times = v["output_times"]
-    for key in ("VISION_SPEED_ESTIMATE", "WIND", "NAMED_VALUE_FLOAT:GSOE_DRIFT"):
+    for key in ("VISION_POSITION_DELTA", "WIND", "NAMED_VALUE_FLOAT:GSOE_DRIFT"):
         after = np.array([t for t in times[key] if t > t_out + 2.0])
         assert after.size > 10, key
         # optical-only estimate: sent without a gap of more than 2 s from 2 s after the outage to overflight

@@ -66,7 +66,8 @@ class VehicleThread:
 def pair() -> Iterator[tuple[VehicleThread, CompanionLink, int]]:
     port = free_udp_port()
     veh = VehicleThread(port, VehicleConfig(start_yaw_deg=30.0, wind_ned_m_s=(0.0, 8.0)))
-    link = CompanionLink(f"udpin://127.0.0.1:{port}", LinkConfig(connect_timeout_s=10.0))
+    link = CompanionLink(f"udpin://127.0.0.1:{port}", LinkConfig(connect_timeout_s=10.0,
+                                                                 velocity_message="vision_speed_estimate"))
     assert link.start(), "MAVSDK did not discover the simulated autopilot"
     yield veh, link, port
     link.stop()

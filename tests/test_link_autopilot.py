@@ -204,13 +204,14 @@ def test_odometry_is_the_body_velocity_with_the_estimate_attitude():
                   [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
     v_n = R @ np.array([f["vx"], f["vy"], f["vz"]])  # what ArduPilot does with it: q * v
     np.testing.assert_allclose(v_n, [20.0, 0.0, 0.5], atol=1e-9)
-    v_b, cov_b = body_velocity(est, cfg)  # type: ignore[misc]
+    v_b, cov_b = body_velocity(est, cfg)
     assert f["velocity_covariance"][0] == pytest.approx(cov_b[0, 0]) and f["velocity_covariance"][11] == \
         pytest.approx(cov_b[2, 2])
     # without the attitude no body-frame velocity is sent
     assert "vision" not in encode_outputs(estimate(roll_rad=math.nan), cfg, {"vision"})
     # the NED form needs none
-    vse = encode_outputs(estimate(roll_rad=math.nan), LinkConfig(), {"vision"})["vision"]
+    vse = encode_outputs(estimate(roll_rad=math.nan), LinkConfig(velocity_message="vision_speed_estimate"),
+                         {"vision"})["vision"]
     assert vse[0] == "VISION_SPEED_ESTIMATE" and (vse[1]["x"], vse[1]["y"]) == (20.0, 0.0)
 
 
@@ -235,6 +236,7 @@ class StockAutopilot:
         self.rates: dict[int, float] = {}
         self.requests: list[tuple[int, float, int]] = []
         self.statustexts: list[str] = []
+        self.outputs: dict[str, Any] = {}
         self._next: dict[int, float] = {}
         self._stop = threading.Event()
         self._t0 = time.monotonic()
@@ -269,6 +271,8 @@ class StockAutopilot:
                     self.requests.append((mid, hz, 0 if ok else 2))
                 elif msg.get_type() == "STATUSTEXT":
                     self.statustexts.append(str(msg.text))
+                elif msg.get_type() in ("ODOMETRY", "VISION_POSITION_DELTA", "VISION_SPEED_ESTIMATE"):
+                    self.outputs[msg.get_type()] = msg.to_dict()
             time.sleep(0.002)
 
     def _stream(self, mid: int, t: float) -> None:
@@ -354,3 +358,38 @@ def test_granted_streams_arrive_on_the_autopilot_clock(stock):
     # the samples' clock and the autopilot's differ by the one offset
     lc = link.guard.link_clock
     assert abs(lc.to_vehicle_us(att[-1]) / 1e6 - ap.boot_s()) < 1.0
+
+
+@pytest.mark.parametrize("message", ["odometry", "vision_position_delta", "vision_speed_estimate"])
+def test_each_velocity_message_reaches_the_autopilot(stock, message):
+    """Including ODOMETRY's unknown (NaN) position and rates: MAVSDK's JSON takes them as null."""
+    ap, link = stock
+    cfg = LinkConfig(velocity_message=message)
+    name, fields = encode_outputs(estimate(), cfg, {"vision"})["vision"]
+    import asyncio
+
+    asyncio.run_coroutine_threadsafe(link._send_one(name, fields), link._loop).result(timeout=5)
+    assert wait_for(lambda: name in ap.outputs, 5.0), name
+    got = ap.outputs[name]
+    if name == "ODOMETRY":
+        assert math.isnan(got["x"]) and math.isnan(got["pose_covariance"][0]) and math.isnan(got["rollspeed"])
+        assert got["vx"] == pytest.approx(fields["vx"], rel=1e-6) and got["child_frame_id"] == MAV_FRAME_BODY_FRD
+    elif name == "VISION_POSITION_DELTA":
+        np.testing.assert_allclose(got["position_delta"], fields["position_delta"], rtol=1e-6)
+    else:
+        assert (got["x"], got["y"]) == pytest.approx((20.0, 0.0))
+
+
+def test_gnss_loss_reports_with_a_frozen_time_still_arrive():
+    """After SIM_GPS1_ENABLE 0 ArduPlane sends GPS_RAW_INT with fix type 1 and its last fix's time_usec: each one is
+    a no-fix report (stamped with the newest autopilot time), not a rejected sample."""
+    g, clock = guard()
+    fix = {"fix_type": 6, "satellites_visible": 10, "time_usec": 61_828_000, "lat": -353632621,
+           "lon": 1491652370, "alt": 584090, "vel": 2000, "cog": 9000, "h_acc": 300, "v_acc": 300, "vel_acc": 100}
+    assert g.message("GPS_RAW_INT", fix).fix_ok
+    for k in range(3):
+        clock.t_us += 200_000
+        g.message("ATTITUDE", {"time_boot_ms": 62_000 + 200 * k, "roll": 0.0, "pitch": 0.0, "yaw": 0.0})
+        s = g.message("GPS_RAW_INT", {**fix, "fix_type": 1, "satellites_visible": 0})
+        assert s is not None and not s.fix_ok and s.fix_type == 1 and s.t_us == g.link_clock.newest_us()
+    assert not any(k.startswith("gnss") for k in g.rejected)
