@@ -8,8 +8,10 @@ Frames as in :mod:`gsoe`: rays are in the raw camera frame ``c``; ``R_bc`` rotat
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, replace
+from typing import cast
 
 import cv2
 import numpy as np
@@ -88,25 +90,31 @@ class CameraModel:
         return px, inside
 
     def project_in_frame(self, rays_c: NDArray[np.float64]) -> NDArray[np.float64] | None:
-        """Lean :meth:`project` for the per-frame path: pixels (N, 2) if every ray lands inside the image, else None."""
+        """Lean :meth:`project` for the per-frame path: pixels (N, 2) if every ray lands inside the image, else None.
+        (Every NumPy call here costs about a microsecond on the template's 16 rays: they are counted.)"""
         z = rays_c[:, 2]
-        norm = np.sqrt(np.einsum("ij,ij->i", rays_c, rays_c))
-        if not np.all(z > self._cos_max_off_axis * norm):
+        if not (z > self._cos_max_off_axis * np.sqrt(np.einsum("ij,ij->i", rays_c, rays_c))).all():
             return None
         obj = rays_c.reshape(-1, 1, 3)
-        if self.model == "fisheye":
+        if self.config.model == "fisheye":
             img, _ = cv2.fisheye.projectPoints(obj, _ZERO3, _ZERO3, self.K, self.D)
         else:
             img, _ = cv2.projectPoints(obj, _ZERO3, _ZERO3, self.K, self.D)
-        px: NDArray[np.float64] = np.asarray(img, dtype=np.float64).reshape(-1, 2)
-        w, h = self.size_px
-        if px[:, 0].min() < -0.5 or px[:, 1].min() < -0.5 or px[:, 0].max() > w - 0.5 or px[:, 1].max() > h - 0.5:
+        px = cast(NDArray[np.float64], img.reshape(-1, 2))
+        (x0, y0), (x1, y1) = np.minimum.reduce(px).tolist(), np.maximum.reduce(px).tolist()
+        w, h = self._frame_limits
+        if x0 < -0.5 or y0 < -0.5 or x1 > w or y1 > h:
             return None
         return px
 
-    @property
+    @functools.cached_property
     def _cos_max_off_axis(self) -> float:
         return float(np.cos(self.max_off_axis_rad))
+
+    @functools.cached_property
+    def _frame_limits(self) -> tuple[float, float]:
+        """The largest pixel coordinates (x, y) inside the image (pixel centres at integers)."""
+        return self.config.width_px - 0.5, self.config.height_px - 0.5
 
     def unproject(self, pixels: NDArray[np.float64]) -> NDArray[np.float64]:
         """Unit rays in the camera frame, shape (N, 3), for pixel coordinates (N, 2)."""

@@ -251,9 +251,13 @@ def _gauss_newton(base: NDArray[np.float32], tpl: NDArray[np.float32], x: float,
     +-``_MAX_SUBPIXEL_OFFSET_PX`` neighbourhood of the discrete minimum (iu, iv).
     """
     th, tw = tpl.shape
-    gx = 0.5 * (tpl[1:-1, 2:] - tpl[1:-1, :-2])
-    gy = 0.5 * (tpl[2:, 1:-1] - tpl[:-2, 1:-1])
-    hxx, hxy, hyy = float(np.vdot(gx, gx)), float(np.vdot(gx, gy)), float(np.vdot(gy, gy))
+    # twice the central differences of the interior, x then y, as the rows of one (2, n) matrix (few NumPy calls:
+    # this runs every frame); the factor 2 of the gradient is the factor 1/2 of the steps below
+    G = np.empty((2, th - 2, tw - 2), np.float32)
+    np.subtract(tpl[1:-1, 2:], tpl[1:-1, :-2], out=G[0])
+    np.subtract(tpl[2:, 1:-1], tpl[:-2, 1:-1], out=G[1])
+    Gm = G.reshape(2, -1)
+    (hxx, hxy), (_, hyy) = Gm.dot(Gm.T).tolist()
     det = hxx * hyy - hxy * hxy
     tr = hxx + hyy
     # lam_min / lam_max >= det / tr^2 of the 2x2 normal matrix; small means texture along one direction only
@@ -265,10 +269,10 @@ def _gauss_newton(base: NDArray[np.float32], tpl: NDArray[np.float32], x: float,
     cx, cy = 1.0 + (tw - 3) / 2.0, 1.0 + (th - 3) / 2.0
     lim = _MAX_SUBPIXEL_OFFSET_PX
     for _ in range(GN_ITERATIONS):
-        err = cv2.getRectSubPix(base, size, (x + cx, y + cy)) - inner
-        bx, by = float(np.vdot(gx, err)), float(np.vdot(gy, err))
-        x -= (hyy * bx - hxy * by) / det
-        y -= (hxx * by - hxy * bx) / det
+        err = np.subtract(cv2.getRectSubPix(base, size, (x + cx, y + cy)), inner)
+        bx, by = Gm.dot(err.reshape(-1)).tolist()
+        x -= 2.0 * (hyy * bx - hxy * by) / det
+        y -= 2.0 * (hxx * by - hxy * bx) / det
         if not (abs(x - iu) <= lim and abs(y - iv) <= lim):
             return None
     return x, y
@@ -289,25 +293,26 @@ def _log_psr_and_gap(surface: NDArray, iu: int, iv: int, exclude: int, floor: fl
     h, w = log_s.shape
     rows = slice(max(iv - exclude, 0), min(iv + exclude + 1, h))
     cols = slice(max(iu - exclude, 0), min(iu + exclude + 1, w))
-    win = log_s[rows, cols].astype(np.float64)
+    win = log_s[rows, cols]
     n = n_all - win.size
     if n < 2:
         return 0.0, 0.0
-    s1 = n_all * m - float(win.sum())
-    s2 = n_all * (sd * sd + m * m) - float(np.vdot(win, win))
+    win_mean, win_std = cv2.meanStdDev(win)
+    wm, ws = float(win_mean[0, 0]), float(win_std[0, 0])
+    s1 = n_all * m - win.size * wm
+    s2 = n_all * (sd * sd + m * m) - win.size * (ws * ws + wm * wm)
     side_mean = s1 / n
     side_std = math.sqrt(max(s2 / n - side_mean * side_mean, 0.0))
     if not (side_std > 0.0 and math.isfinite(side_std)):
         return 0.0, 0.0
     l_min = float(log_s[iv, iu])
     psr = (side_mean - l_min) / side_std
-    # other local minima: points no higher than their 8 neighbours, outside the excluded window
-    local_min = (log_s <= cv2.erode(log_s, _KERNEL_3X3, borderType=cv2.BORDER_REPLICATE)).view(np.uint8)
-    local_min[rows, cols] = 0
-    if local_min.any():
-        gap = (cv2.minMaxLoc(log_s, mask=local_min)[0] - l_min) / side_std
-    else:  # no other valley in view
-        gap = math.inf
+    # other local minima: points no higher than their 8 neighbours, outside the excluded window (where the eroded
+    # surface is set below everything)
+    eroded = cv2.erode(log_s, _KERNEL_3X3, borderType=cv2.BORDER_REPLICATE)
+    eroded[rows, cols] = -np.inf
+    other_min, _, loc, _ = cv2.minMaxLoc(log_s, mask=(log_s <= eroded).view(np.uint8))
+    gap = (other_min - l_min) / side_std if loc[0] >= 0 else math.inf     # (-1, -1): no other valley in view
     return (psr if math.isfinite(psr) else 0.0), gap
 
 
@@ -417,10 +422,10 @@ def match_template(base: NDArray, template: NDArray, cfg: MatchConfig,
         return _invalid(f"template {template.shape} on base {base.shape}: search surface {nv}x{nu}, need 3x3")
     base32 = _as_float32(base)
     tpl32 = _as_float32(template)
-    tpl_sum = float(tpl32.sum(dtype=np.float64))
-    if not math.isfinite(tpl_sum):
+    tpl_mean, tpl_sd = cv2.meanStdDev(tpl32)
+    tpl_std = float(tpl_sd[0, 0])
+    if not math.isfinite(float(tpl_mean[0, 0]) + tpl_std):
         return _invalid("non-finite pixel values")
-    tpl_std = texture_std(tpl32)
     exclude = cfg.sidelobe_exclude_px
     floor = th * tw * SSD_FLOOR_PER_PX
 

@@ -70,6 +70,11 @@ class Patch:
     valid: bool
 
 
+#: A patch with at most this many (pixel, grid node) pairs is interpolated through one joint matrix (the template:
+#: 361 x 16); larger ones (the base image: 8833 x 160) through the two separable ones.
+_JOINT_INTERP_MAX = 20_000
+
+
 class PatchSampler:
     """Samples one stabilised patch geometry (``width_px`` x ``height_px``, reference pixel ``ref_uv``)."""
 
@@ -83,11 +88,26 @@ class PatchSampler:
         nodes_v, self._A_v = _interp_matrix(height_px, grid_px)
         self._A_uT = np.ascontiguousarray(self._A_u.T)
         uu, vv = np.meshgrid(nodes_u, nodes_v)
-        # ground offsets of the grid nodes in pixels: forward (x) and right (y) in the heading frame
-        self._fwd_px = (ref_uv[1] - vv).ravel()
-        self._right_px = (uu - ref_uv[0]).ravel()
+        # ground offsets of the grid nodes in pixels: forward (x) and right (y) in the heading frame, one row a node
+        self._nodes_fr = np.column_stack([(ref_uv[1] - vv).ravel(), (uu - ref_uv[0]).ravel()])
         self._grid_shape = uu.shape
-        self._rays_h = np.ones((self._fwd_px.size, 3))
+        self._rays_h = np.ones((self._nodes_fr.shape[0], 3))
+        # pixel (row-major) from the nodes (row-major): A_v (x) A_u, for the small patches
+        joint = width_px * height_px * self._nodes_fr.shape[0] <= _JOINT_INTERP_MAX
+        self._A_joint = np.kron(self._A_v, self._A_u) if joint else None
+        self._R_z: tuple[float, NDArray[np.float64]] = (math.nan, np.eye(3))    # the last heading's R_z
+
+    def _pixels(self, R_cn: NDArray[np.float64], base_yaw_rad: float, scale: float,
+                offset_fwd_right_px: tuple[float, float]) -> NDArray[np.float64] | None:
+        """Raw-frame pixels (N, 2) of the grid nodes, or None when one leaves the frame.  (A per-frame path of a
+        few small arrays: every NumPy call costs about a microsecond, so they are few.)"""
+        rays_h = self._rays_h
+        nodes = self._nodes_fr if offset_fwd_right_px == (0.0, 0.0) else self._nodes_fr + offset_fwd_right_px
+        np.multiply(nodes, scale, out=rays_h[:, :2])
+        if self._R_z[0] != base_yaw_rad:          # one heading per cycle
+            self._R_z = (base_yaw_rad, R_z(base_yaw_rad))
+        rays_c = rays_h @ (R_cn @ self._R_z[1]).T
+        return self.camera.project_in_frame(rays_c)
 
     def sample_map(self, R_cn: NDArray[np.float64], base_yaw_rad: float, scale: float,
                    offset_fwd_right_px: tuple[float, float] = (0.0, 0.0)
@@ -98,22 +118,25 @@ class PatchSampler:
         height (``1 / focal_px`` times the height ratio base/current); ``offset_fwd_right_px`` shifts the
         reference ground point (in stabilised pixels).
         """
-        rays_h = self._rays_h
-        rays_h[:, 0] = (self._fwd_px + offset_fwd_right_px[0]) * scale
-        rays_h[:, 1] = (self._right_px + offset_fwd_right_px[1]) * scale
-        rays_c = rays_h @ (R_cn @ R_z(base_yaw_rad)).T
-        px = self.camera.project_in_frame(rays_c)
+        px = self._pixels(R_cn, base_yaw_rad, scale, offset_fwd_right_px)
         if px is None:
             return np.empty((0, 0), np.float32), np.empty((0, 0), np.float32), False
-        gx = px[:, 0].reshape(self._grid_shape)
-        gy = px[:, 1].reshape(self._grid_shape)
-        map_x = (self._A_v @ gx @ self._A_uT).astype(np.float32)
-        map_y = (self._A_v @ gy @ self._A_uT).astype(np.float32)
-        return map_x, map_y, True
+        # both maps interpolated at once: (2, nodes_v, nodes_u) -> (2, height, width)
+        maps = (self._A_v @ px.T.reshape(2, *self._grid_shape) @ self._A_uT).astype(np.float32)
+        return maps[0], maps[1], True
 
     def sample(self, raw: Frame, R_cn: NDArray[np.float64], base_yaw_rad: float, scale: float,
                offset_fwd_right_px: tuple[float, float] = (0.0, 0.0)) -> Patch:
-        map_x, map_y, ok = self.sample_map(R_cn, base_yaw_rad, scale, offset_fwd_right_px)
+        joint = self._A_joint
+        xy = None
+        if joint is None:
+            map_x, map_y, ok = self.sample_map(R_cn, base_yaw_rad, scale, offset_fwd_right_px)
+        else:                         # one product, one 2-channel map (x, y) per pixel
+            px = self._pixels(R_cn, base_yaw_rad, scale, offset_fwd_right_px)
+            ok = px is not None
+            if px is not None:
+                xy = (joint @ px).astype(np.float32).reshape(self.height_px, self.width_px, 2)
+                map_x, map_y = xy[:, :, 0], xy[:, :, 1]
         if not ok:
             return Patch(np.zeros((self.height_px, self.width_px), np.float32), False)
         if callable(raw):
@@ -121,7 +144,11 @@ class PatchSampler:
             roi = (max(0, int(map_x.min()) - 1), max(0, int(map_y.min()) - 1),
                    min(w, int(map_x.max()) + 3), min(h, int(map_y.max()) + 3))
             raw = raw(roi)
-        patch = cv2.remap(raw, map_x, map_y, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        if xy is None:
+            patch = cv2.remap(raw, map_x, map_y, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        else:
+            patch = cv2.remap(raw, xy, None, interpolation=cv2.INTER_LINEAR,   # type: ignore[call-overload]
+                              borderMode=cv2.BORDER_REPLICATE)
         return Patch(to_intensity(patch), True)
 
 
