@@ -1,18 +1,28 @@
-"""``gsoe bench``: per-frame cost of the optical pipeline, the renderer and the EKF step (figures, not tests).
+"""``gsoe bench``: per-frame cost of the optical pipeline, the renderer, the EKF step and the companion's loop (figures,
+not tests).
 
 The optical pipeline is timed from the raw fisheye frame to the displacement (``GsoeEstimator.process_frame``),
 one OpenCV thread, with Intel IPP on and off (``cv2.ipp.setUseIPP(False)`` is the path an ARM board takes), beside
 the naive path the paper describes: undistort the whole frame (``cv2.fisheye`` maps, precomputed), crop the base
-image and template around the eq. 2-3 nadir point, full SSD.  Frames come from a scripted flight over a real
-orthophoto (straight and a 30 deg/s turn at 100 m, 18 m/s).
+image and template around the eq. 2-3 nadir point, full SSD.  The configured matcher (``[match] method``, the window
+around the predicted position) and the exhaustive search are timed too.  The three run in turns over blocks of 30
+frames (:data:`BLOCK_FRAMES`), so that a loaded machine slows them alike and their ratio holds.  Frames come from a
+scripted flight over a real orthophoto (straight and a 30 deg/s turn at 100 m, 18 m/s).
+
+The companion's loop (:func:`nav.bench_loop.companion_loop_cpu`): the same flight's telemetry at the autopilot link's
+rates (attitude and IMU 50 Hz, airspeed and baro 10 Hz, GNSS 5 Hz for the first ``--gnss-s`` seconds) and its frames
+at the camera rate, through the companion's estimate path and log; the CPU time per second of flight is the
+fraction of one core it takes.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import statistics
+import tempfile
 import time
 from typing import Any
 
@@ -20,7 +30,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from common.samples import AttitudeSample, ImuSample
+from common.samples import AirspeedSample, AttitudeSample, BaroSample, GnssSample, ImuSample
 from gsoe.camera import CameraModel
 from gsoe.config import GsoeConfig
 from gsoe.cycle import GsoeEstimator
@@ -36,6 +46,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", default=None, help="configuration file (default config/default.toml)")
     p.add_argument("--texture", default="forest_road")
     p.add_argument("--json", default=None, help="also write the figures to this JSON file")
+    p.add_argument("--gnss-s", type=float, default=10.0,
+                   help="companion loop: GNSS fixes for this long, then lost (default 10 s)")
+    p.add_argument("--no-geometry", action="store_true",
+                   help="skip the base-geometry comparison (two rendered flights)")
 
 
 def _frames(cfg: GsoeConfig, camera: CameraModel, texture: str, n: int, rate_hz: float
@@ -60,54 +74,117 @@ def _frames(cfg: GsoeConfig, camera: CameraModel, texture: str, n: int, rate_hz:
     return frames, imu, flight
 
 
-def _time_pipeline(cfg: GsoeConfig, camera: CameraModel, frames: list, imu: list) -> dict[str, float]:
-    est = GsoeEstimator(cfg, camera)
-    times = []
-    valid = 0
-    i_imu = 0
-    for t_us, image, h in frames:
-        while i_imu < len(imu) and imu[i_imu][0] <= t_us:
-            ti, R, w = imu[i_imu]
-            yaw, pitch, roll = R.as_euler("ZYX")
+def _push_attitude(ests: list[GsoeEstimator], imu: list, i_imu: int, t_us: int) -> int:
+    """The bench's IMU and attitude samples up to ``t_us`` into every estimator; the next index."""
+    while i_imu < len(imu) and imu[i_imu][0] <= t_us:
+        ti, R, w = imu[i_imu]
+        yaw, pitch, roll = R.as_euler("ZYX")
+        for est in ests:
             est.push_imu(ImuSample(ti, w, np.zeros(3)))
             est.push_attitude(AttitudeSample(ti, roll, pitch, yaw))
-            i_imu += 1
-        t0 = time.perf_counter()
-        steps = est.process_frame(t_us, image, h)
-        times.append(time.perf_counter() - t0)
-        valid += sum(1 for s in steps if s.valid and not s.new_cycle)
-    return {"median_ms": 1e3 * statistics.median(times), "p95_ms": 1e3 * float(np.percentile(times, 95)),
-            "valid_matches": valid}
+        i_imu += 1
+    return i_imu
 
 
-def _time_naive(cfg: GsoeConfig, camera: CameraModel, frames: list, imu: list) -> dict[str, float]:
-    """Undistort the whole frame to a pinhole view, crop around eq. 2-3, full SSD against a base snapshot."""
-    w, h = camera.size_px
-    f = camera.config.fx_px
-    K_new = np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1.0]])
-    map1, map2 = cv2.fisheye.initUndistortRectifyMap(camera.K, camera.D, np.eye(3), K_new, (w, h), cv2.CV_16SC2)
-    hfov = 2 * math.atan(w / 2 / f)
-    vfov = 2 * math.atan(h / 2 / f)
-    bw, bh, tp = cfg.stab.base_cross_px, cfg.stab.base_along_px, cfg.stab.template_px
-    att = {t: R for t, R, _ in imu}
-    times = []
-    base = None
-    for k, (t_us, image, _) in enumerate(frames):
-        R = att.get(t_us) or min(att.items(), key=lambda kv: abs(kv[0] - t_us))[1]
+class _NaivePath:
+    """Undistort the whole frame to a pinhole view, crop around eq. 2-3, full SSD against a base snapshot (a new
+    one every 10 frames)."""
+
+    def __init__(self, cfg: GsoeConfig, camera: CameraModel, imu: list) -> None:
+        w, h = camera.size_px
+        f = camera.config.fx_px
+        K_new = np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1.0]])
+        self.map1, self.map2 = cv2.fisheye.initUndistortRectifyMap(camera.K, camera.D, np.eye(3), K_new, (w, h),
+                                                                   cv2.CV_16SC2)
+        self.size = (w, h)
+        self.fov = (2 * math.atan(w / 2 / f), 2 * math.atan(h / 2 / f))
+        self.geom = (cfg.stab.base_cross_px, cfg.stab.base_along_px, cfg.stab.template_px)
+        self.att = {t: R for t, R, _ in imu}
+        self.base: np.ndarray | None = None
+        self.k = 0
+
+    def step(self, t_us: int, image: np.ndarray) -> float:
+        """One frame; returns its time (s)."""
+        R = self.att.get(t_us) or min(self.att.items(), key=lambda kv: abs(kv[0] - t_us))[1]
         yaw, pitch, roll = R.as_euler("ZYX")
+        bw, bh, tp = self.geom
         t0 = time.perf_counter()
-        und = cv2.remap(image, map1, map2, cv2.INTER_LINEAR)
+        und = cv2.remap(image, self.map1, self.map2, cv2.INTER_LINEAR)
         # eq. 2-3 in our camera: image x follows roll, image y follows pitch (nose up moves the nadir down)
-        xs, ys = nadir_pixel_paper(roll, pitch, w, h, hfov, vfov)
-        xi, yi = int(round(xs)), int(round(ys))
-        if base is None or k % 10 == 0:
-            base = und[max(0, yi - bh // 2): yi + bh // 2 + 1, max(0, xi - bw // 2): xi + bw // 2 + 1].astype(
+        xs, ys = nadir_pixel_paper(roll, pitch, *self.size, *self.fov)
+        xi, yi = int(round(float(xs))), int(round(float(ys)))
+        if self.base is None or self.k % 10 == 0:
+            self.base = und[max(0, yi - bh // 2): yi + bh // 2 + 1, max(0, xi - bw // 2): xi + bw // 2 + 1].astype(
                 np.float32)
         tpl = und[yi - tp // 2: yi + tp // 2 + 1, xi - tp // 2: xi + tp // 2 + 1].astype(np.float32)
-        if base.shape[0] >= tp and base.shape[1] >= tp and tpl.shape == (tp, tp):
-            cv2.minMaxLoc(cv2.matchTemplate(base, tpl, cv2.TM_SQDIFF))
-        times.append(time.perf_counter() - t0)
-    return {"median_ms": 1e3 * statistics.median(times)}
+        if self.base.shape[0] >= tp and self.base.shape[1] >= tp and tpl.shape == (tp, tp):
+            cv2.minMaxLoc(cv2.matchTemplate(self.base, tpl, cv2.TM_SQDIFF))
+        self.k += 1
+        return time.perf_counter() - t0
+
+
+#: The optical paths are timed in turns over blocks of this many frames (each path runs every frame, in order): a
+#: block is long enough that each path runs with its own data in the caches, as it would alone, and short enough
+#: that a loaded machine's slow and quiet spells fall on all paths alike.
+BLOCK_FRAMES = 30
+
+
+def _time_optical(cfg: GsoeConfig, camera: CameraModel, frames: list, imu: list) -> dict[str, dict[str, float]]:
+    """The configured pipeline, the pipeline with the exhaustive search and the naive path, in turns over blocks of
+    :data:`BLOCK_FRAMES` frames: median and 95th percentile per frame (ms), valid matches."""
+    cfg_ex = dataclasses.replace(cfg, match=dataclasses.replace(cfg.match, method="exhaustive"))
+    ests = {"pipeline": GsoeEstimator(cfg, camera), "pipeline_exhaustive": GsoeEstimator(cfg_ex, camera)}
+    naive = _NaivePath(cfg, camera, imu)
+    times: dict[str, list[float]] = {"pipeline": [], "pipeline_exhaustive": [], "naive": []}
+    valid = dict.fromkeys(ests, 0)
+    i_imu = dict.fromkeys(ests, 0)
+    order = ["pipeline", "pipeline_exhaustive", "naive"]
+    for b, k0 in enumerate(range(0, len(frames), BLOCK_FRAMES)):
+        block = frames[k0:k0 + BLOCK_FRAMES]
+        for name in order[b % 3:] + order[:b % 3]:
+            for t_us, image, h in block:
+                if name == "naive":
+                    times[name].append(naive.step(t_us, image))
+                    continue
+                i_imu[name] = _push_attitude([ests[name]], imu, i_imu[name], t_us)
+                t0 = time.perf_counter()
+                steps = ests[name].process_frame(t_us, image, h)
+                times[name].append(time.perf_counter() - t0)
+                valid[name] += sum(1 for s in steps if s.valid and not s.new_cycle)
+    out: dict[str, dict[str, float]] = {}
+    for name, ts in times.items():
+        out[name] = {"median_ms": 1e3 * statistics.median(ts), "p95_ms": 1e3 * float(np.percentile(ts, 95))}
+        if name in valid:
+            out[name]["valid_matches"] = valid[name]
+    return out
+
+
+def _telemetry(flight: ScriptedFlight, t_end_s: float, gnss_s: float, home_amsl_m: float = 500.0) -> list[Any]:
+    """The flight's telemetry at the autopilot link's rates (attitude and IMU 50 Hz on the same stamps, airspeed and
+    baro 10 Hz, GNSS 5 Hz with a fix for the first ``gnss_s`` seconds, home 1 Hz), time-ordered."""
+    from nav.link import HomeReading
+
+    out: list[tuple[int, int, Any]] = []
+    for rate, kind in ((50.0, 0), (10.0, 1), (5.0, 2), (1.0, 3)):
+        for k in range(int(t_end_s * rate) + 1):
+            t = k / rate
+            tr = flight.truth(t)
+            t_us = int(round(t * 1e6))
+            if kind == 0:
+                out.append((t_us, 0, AttitudeSample(t_us, tr.roll_rad, tr.pitch_rad, tr.yaw_rad)))
+                out.append((t_us, 1, ImuSample(t_us, tr.rates_b_rad_s, tr.accel_b_m_s2)))
+            elif kind == 1:
+                out.append((t_us, 2, AirspeedSample(t_us, tr.tas_m_s)))
+                out.append((t_us, 3, BaroSample(t_us, home_amsl_m + tr.height_agl_m)))
+            elif kind == 2:
+                fix = t < gnss_s
+                out.append((t_us, 4, GnssSample(t_us, tr.pos_ned_m.copy(), tr.vel_ned_m_s.copy(), fix, 12 if fix else 0,
+                                                h_acc_m=1.0, v_acc_m_s=0.3, alt_msl_m=home_amsl_m + tr.height_agl_m,
+                                                alt_acc_m=2.0)))
+            else:
+                out.append((t_us, 5, HomeReading(t_us, home_amsl_m + tr.height_agl_m, tr.height_agl_m)))
+    out.sort(key=lambda e: (e[0], e[1]))
+    return [s for _, _, s in out]
 
 
 def _time_render(camera: CameraModel, texture: str, flight: ScriptedFlight, cfg: GsoeConfig) -> dict[str, float]:
@@ -171,35 +248,57 @@ def run(args: argparse.Namespace) -> int:
     cv2.setNumThreads(1)
     print(f"gsoe bench: rendering {args.frames} frames over '{args.texture}' ...", flush=True)
     frames, imu, flight = _frames(cfg, camera, args.texture, args.frames, cfg.cycle.rate_hz)
-    results: dict[str, Any] = {"frames": args.frames, "opencv": cv2.__version__, "ipp_available": cv2.ipp.useIPP()}
+    results: dict[str, Any] = {"frames": args.frames, "opencv": cv2.__version__, "ipp_available": cv2.ipp.useIPP(),
+                               "match_method": cfg.match.method}
     for ipp in (True, False):
         cv2.ipp.setUseIPP(ipp)
-        key = "ipp_on" if ipp else "ipp_off"
-        results[f"pipeline_{key}"] = _time_pipeline(cfg, camera, frames, imu)
-        results[f"naive_{key}"] = _time_naive(cfg, camera, frames, imu)
+        results["ipp_on" if ipp else "ipp_off"] = _time_optical(cfg, camera, frames, imu)
     cv2.ipp.setUseIPP(True)
     results["render"] = _time_render(camera, args.texture, flight, cfg)
-    results["geometry"] = _geometry_comparison(cfg, camera, args.texture)
+    if not args.no_geometry:
+        results["geometry"] = _geometry_comparison(cfg, camera, args.texture)
     try:
         from fusion.bench import bench_ekf_step
     except ImportError:
         results["ekf_step"] = "fusion.bench not available"
     else:
         results["ekf_step"] = bench_ekf_step(2000)
-    print(f"{'':28s}{'median ms/frame':>18s}{'vs naive':>10s}")
+    from nav.bench_loop import companion_loop_cpu
+
+    samples = _telemetry(flight, frames[-1][0] / 1e6 + 0.1, args.gnss_s)
+    with tempfile.TemporaryDirectory() as tmp:
+        results["companion_loop"] = companion_loop_cpu(cfg, raw, camera, samples, [(t, im) for t, im, _ in frames],
+                                                       tmp)
+    print(f"{'':36s}{'median ms/frame':>16s}{'p95':>8s}{'vs naive':>10s}")
     for key in ("ipp_on", "ipp_off"):
-        p = results[f"pipeline_{key}"]["median_ms"]
-        n = results[f"naive_{key}"]["median_ms"]
-        print(f"{'GSOE pipeline (' + key + ')':28s}{p:18.3f}{n / p:9.1f}x")
-        print(f"{'naive path (' + key + ')':28s}{n:18.3f}")
-    print(f"{'render full 800x600':28s}{results['render']['full_frame_ms']:18.3f}")
-    print(f"{'render estimator ROI':28s}{results['render']['estimator_roi_ms']:18.3f}")
-    print(f"EKF step: {results['ekf_step']}")
-    print(f"valid matches: {results['pipeline_ipp_on']['valid_matches']} of {args.frames} frames")
-    print("base geometry (cycle-end drift error, noisy AHRS/gyro, 20 m/s at 100 m, straight + 20 deg/s turn):")
-    for name, g in results["geometry"].items():
-        print(f"  {name:24s} cycles {g['cycles']:4d}  drift MAE {g['drift_mae_deg']:.3f} deg  "
-              f"p95 {g['drift_p95_deg']:.3f} deg  template travel {g['travel_px_median']:.1f} px")
+        r = results[key]
+        n = r["naive"]["median_ms"]
+        for name, label in (("pipeline", f"GSOE pipeline, {cfg.match.method}"),
+                            ("pipeline_exhaustive", "GSOE pipeline, exhaustive"), ("naive", "naive path")):
+            p = r[name]
+            ratio = f"{n / p['median_ms']:9.1f}x" if name != "naive" else ""
+            print(f"{label + ' (' + key + ')':36s}{p['median_ms']:16.3f}{p['p95_ms']:8.3f}{ratio}")
+    print(f"{'render full 800x600':36s}{results['render']['full_frame_ms']:16.3f}")
+    print(f"{'render estimator ROI':36s}{results['render']['estimator_roi_ms']:16.3f}")
+    e = results["ekf_step"]
+    if isinstance(e, dict):
+        print(f"EKF step (predict + the updates of one camera frame): median {e['frame_us_median']:.1f} us, "
+              f"p95 {e['frame_us_p95']:.1f} us (IMU {e['imu_us_per_frame']:.1f}, optical {e['optical_us']:.1f}, "
+              f"airspeed + sideslip + AoA {e['airspeed_us']:.1f}, baro {e['baro_us']:.1f} us)")
+    else:
+        print(f"EKF step: {e}")
+    c = results["companion_loop"]
+    print(f"companion loop at {c['frame_rate_hz']:.0f} Hz (estimate path and log, no link): "
+          f"{100 * c['cpu_one_core_frac']:.1f} % of one core, frame -> output median "
+          f"{c['frame_to_output_us_median'] / 1e3:.2f} ms (p95 {c['frame_to_output_us_p95'] / 1e3:.2f} ms), "
+          f"{c['outputs_valid']} of {c['frames']} estimates valid")
+    print(f"valid matches: {results['ipp_on']['pipeline']['valid_matches']} of {args.frames} frames "
+          f"({results['ipp_on']['pipeline_exhaustive']['valid_matches']} exhaustive)")
+    if "geometry" in results:
+        print("base geometry (cycle-end drift error, noisy AHRS/gyro, 20 m/s at 100 m, straight + 20 deg/s turn):")
+        for name, g in results["geometry"].items():
+            print(f"  {name:24s} cycles {g['cycles']:4d}  drift MAE {g['drift_mae_deg']:.3f} deg  "
+                  f"p95 {g['drift_p95_deg']:.3f} deg  template travel {g['travel_px_median']:.1f} px")
     if args.json:
         with open(args.json, "w") as fh:
             json.dump(results, fh, indent=2, default=str)
