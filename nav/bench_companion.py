@@ -41,20 +41,14 @@ from typing import Any
 
 import numpy as np
 
+from common.procs import STOP_GRACE_S, free_port, stop_process
+
 ROOT = Path(__file__).resolve().parent.parent
 PY = sys.executable
 VEHICLE_START_S = 1.0      # head start of the vehicle process before the companion starts
-STOP_GRACE_S = 20.0        # time a process gets to exit after SIGINT
 TRACKING_SETTINGS = ('companion.tracking.source="mavlink"', 'companion.tracking.mount="forward"')
 
 log = logging.getLogger(__name__)
-
-
-def free_port(kind: int) -> int:
-    """A free port on 127.0.0.1 (``socket.SOCK_DGRAM`` or ``socket.SOCK_STREAM``)."""
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @dataclass(frozen=True)
@@ -69,16 +63,6 @@ class SilFlight:
     @property
     def log_dir(self) -> Path:
         return self.out_dir / "log"
-
-
-def _stop(p: subprocess.Popen[bytes], timeout_s: float = STOP_GRACE_S) -> None:
-    if p.poll() is None:
-        p.send_signal(signal.SIGINT)
-        try:
-            p.wait(timeout=timeout_s)
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait(timeout=timeout_s)
 
 
 def sil_flight(out_dir: Path, *, duration_s: float, vehicle_args: Sequence[str] = (),
@@ -118,8 +102,8 @@ def sil_flight(out_dir: Path, *, duration_s: float, vehicle_args: Sequence[str] 
                 log.warning("vehicle did not finish in time")
         finally:
             if comp is not None:
-                _stop(comp)
-            _stop(veh)
+                stop_process(comp)
+            stop_process(veh)
     vehicle = json.loads((out_dir / "vehicle.json").read_text()) if (out_dir / "vehicle.json").exists() else {}
     text = (out_dir / "companion.out").read_text()
     companion = json.loads(text) if text.strip() else {}

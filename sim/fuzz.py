@@ -47,7 +47,6 @@ import logging
 import math
 import os
 import select
-import signal
 import socket
 import subprocess
 import sys
@@ -63,6 +62,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from common.logio import claim_run_folder
+from common.procs import free_port, stop_process
 
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402  (MAVLINK20 must be set before import)
@@ -86,8 +86,10 @@ GENUINE_TYPES = ("ATTITUDE", "SCALED_IMU", "RAW_IMU", "GPS_RAW_INT", "VFR_HUD", 
 ISSUE_SPOOF_ACCEL_G = 15.3
 ISSUE_SPOOF_GYRO_RAD_S = 30.0
 TICK_S = 0.002              # the station's loop period
+#: the companion's settings in a fuzz flight: the velocity as VISION_SPEED_ESTIMATE (north/east with its covariance),
+#: what the station compares with the truth
+FUZZ_SETTINGS = ('companion.link.velocity_message="vision_speed_estimate"',)
 VEHICLE_START_S = 1.0       # the vehicle's head start before the companion
-STOP_GRACE_S = 20.0
 
 
 @dataclass(frozen=True)
@@ -108,12 +110,6 @@ class StationRecord:
     velocity: list[tuple[float, float, float, float, float, float, float, float]] = field(default_factory=list)
     valid: list[tuple[float, float]] = field(default_factory=list)  # (t_s, GSOE_VALID)
     vehicle_t_s: float = 0.0
-
-
-def free_port(kind: int) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def _flip_bits(buf: bytes, rng: np.random.Generator) -> bytes:
@@ -337,16 +333,6 @@ class FuzzFlight:
 
 
 
-def _stop(p: subprocess.Popen[bytes], timeout_s: float = STOP_GRACE_S) -> None:
-    if p.poll() is None:
-        p.send_signal(signal.SIGINT)
-        try:
-            p.wait(timeout=timeout_s)
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait(timeout=timeout_s)
-
-
 def fuzz_flight(out_dir: Path, bursts: Sequence[Burst], *, duration_s: float, vehicle_args: Sequence[str] = (),
                 companion_settings: Sequence[str] = (), companion_delay_s: float = VEHICLE_START_S,
                 frame_hz: float = 15.0) -> FuzzFlight:
@@ -362,7 +348,7 @@ def fuzz_flight(out_dir: Path, bursts: Sequence[Burst], *, duration_s: float, ve
                "--start-yaw-deg", "30", *vehicle_args]
     comp_cmd = [PY, "-m", "cli", "companion", "--connect", f"udpin://127.0.0.1:{udp}", "--camera",
                 f"sim://127.0.0.1:{tcp}", "--log-dir", str(out_dir / "log")]
-    for s in companion_settings:
+    for s in (*FUZZ_SETTINGS, *companion_settings):
         comp_cmd += ["--set", s]
     station = HostileStation(gcs, udp, bursts)
     thread = threading.Thread(target=station.run, name="hostile-station", daemon=True)
@@ -393,7 +379,7 @@ def fuzz_flight(out_dir: Path, bursts: Sequence[Burst], *, duration_s: float, ve
                 log.warning("vehicle did not finish in time")
         finally:
             for p in reversed(procs):
-                _stop(p)
+                stop_process(p)
             station.stop()
             thread.join(timeout=5.0)
     vehicle = json.loads((out_dir / "vehicle.json").read_text()) if (out_dir / "vehicle.json").exists() else {}

@@ -56,6 +56,7 @@ from numpy.typing import NDArray
 
 from common.angles import wrap_360, wrap_pi
 from common.logio import RunLog, read_log
+from common.procs import free_port, stop_process
 from common.report import write_metrics
 
 os.environ.setdefault("MAVLINK20", "1")
@@ -75,7 +76,6 @@ MAV_CMD_SET_EKF_SOURCE_SET = 42007
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
 ARDUPLANE_MODE_AUTO = 10
 FORCE_ARM_MAGIC = 21196
-STOP_GRACE_S = 20.0
 PROCESS_START_TIMEOUT_S = 60.0
 EKF_READY_TIMEOUT_S = 120.0   # autopilot seconds for the EKF to use the GNSS after boot
 LIFTOFF_M = 2.0               # truth height over the ground that counts as airborne
@@ -141,6 +141,7 @@ def sitl_parameters(spec: MissionSpec) -> dict[str, float]:
     """ArduPlane parameters the flight sets on top of the model's defaults (docs/ardupilot.md lists each one)."""
     return {
         "ARMING_CHECK": 0,                 # SITL only: no pre-arm checks (no RC, no calibrations)
+        "SCHED_LOOP_RATE": 50,             # ArduPlane's default: message rates above 0.8 x 50 Hz are refused
         "SIM_WIND_SPD": spec.wind_speed_m_s,
         "SIM_WIND_DIR": spec.wind_from_deg,
         "SIM_WIND_TURB": 0,
@@ -159,6 +160,10 @@ def sitl_parameters(spec: MissionSpec) -> dict[str, float]:
         "RC7_OPTION": 90,                  # RC7 low/middle/high: EKF source set 1/2/3
         **dict(spec.ap_params),
     }
+
+
+#: parameters the flight sets while flying (the GNSS loss)
+IN_FLIGHT_PARAMETERS = ("SIM_GPS1_ENABLE",)
 
 
 def companion_settings(spec: MissionSpec) -> list[str]:
@@ -203,12 +208,6 @@ def racetrack(spec: MissionSpec) -> list[tuple[float, float]]:
 
 
 # ------------------------------------------------------------------------------------------------ processes
-def free_port(kind: int) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def _port_free(port: int) -> bool:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         try:
@@ -225,18 +224,6 @@ def free_instance(rng: np.random.Generator) -> int:
         if all(_port_free(SERIAL0_TCP_BASE + 10 * i + k) for k in (0, 2)):
             return i
     raise RuntimeError("no free SITL instance ports")
-
-
-def stop_process(p: subprocess.Popen[bytes], sig: int = signal.SIGINT, timeout_s: float = STOP_GRACE_S) -> None:
-    """Stop one process we started, by its id: ``sig``, then SIGKILL after ``timeout_s``."""
-    if p.poll() is None:
-        with contextlib.suppress(ProcessLookupError):
-            p.send_signal(sig)
-        try:
-            p.wait(timeout=timeout_s)
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait(timeout=10)
 
 
 @contextlib.contextmanager
@@ -257,9 +244,17 @@ def started(cmd: Sequence[str], cwd: Path, log_path: Path, sig: int = signal.SIG
 class GroundStation:
     """The harness's MAVLink link to ArduPlane (SERIAL0): commands, parameters, mission, and the flight's logs."""
 
-    def __init__(self, url: str, runlog: RunLog) -> None:
-        self.conn = mavutil.mavlink_connection(url, source_system=255, source_component=190, dialect="ardupilotmega",
-                                               autoreconnect=True)
+    def __init__(self, url: str, runlog: RunLog, timeout_s: float = PROCESS_START_TIMEOUT_S) -> None:
+        end = time.monotonic() + timeout_s
+        while True:  # the SITL listens only once it has started
+            try:
+                self.conn = mavutil.mavlink_connection(url, source_system=255, source_component=190,
+                                                       dialect="ardupilotmega", autoreconnect=True)
+                break
+            except OSError:
+                if time.monotonic() > end:
+                    raise
+                time.sleep(0.2)
         self.runlog = runlog
         self.t_us = 0          # the autopilot's clock: the newest stamp received
         self.statustexts: list[tuple[int, str]] = []
@@ -520,7 +515,7 @@ def _fly(gcs: GroundStation, spec: MissionSpec, runlog: RunLog, t_start: float, 
     while gcs.t_us < end_on:
         gcs.pump()
         check_wall()
-    if not gcs.set_param("SIM_GPS1_ENABLE", 0):
+    if not gcs.set_param(IN_FLIGHT_PARAMETERS[0], 0):
         raise RuntimeError("SIM_GPS1_ENABLE not set")
     runlog.write("events", {"t_us": gcs.t_us, "event": "gnss_off"})
     rc = spec.extnav and spec.source_switch == "rc"
