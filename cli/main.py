@@ -25,6 +25,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "sitl-camera": ("cli.cmd_sitl_camera", "render the belly camera of a plane flown by ArduPlane SITL (its "
                                            "SIM_STATE) as the simulator's frame stream"),
     "montecarlo": ("cli.cmd_montecarlo", "run a seeded Monte Carlo campaign of simulated flights"),
+    "report": ("cli.cmd_report", "the flight report (report.html) of a run folder: gsoe sim, gsoe replay or a "
+                                 "companion's logs"),
 }
 
 

@@ -28,7 +28,7 @@ import io
 import operator
 import os
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -176,6 +176,35 @@ class RunLog:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class Decimator:
+    """A sink in front of :meth:`RunLog.write` that writes a stream's record only when at least ``periods_s[stream]``
+    has passed since the last one written (streams not named: every record).  Records are told apart by
+    ``keys[stream]`` columns, each value combination with its own clock (``aid_status``: per source and per
+    rejected/not, so every change from fused to rejected is written).  Records without a ``t_us`` pass."""
+
+    def __init__(self, write: Callable[[str, Mapping[str, Any]], None], periods_s: Mapping[str, float],
+                 keys: Mapping[str, Sequence[str]] | None = None) -> None:
+        self._write = write
+        self._period_us = {k: round(v * 1e6) for k, v in periods_s.items()}
+        self._keys = dict(keys or {})
+        self._last: dict[tuple[Any, ...], int] = {}
+        self.dropped: dict[str, int] = {}
+
+    def __call__(self, stream: str, record: Mapping[str, Any]) -> None:
+        period = self._period_us.get(stream)
+        t = record.get("t_us")
+        if period is None or not isinstance(t, int | np.integer):
+            self._write(stream, record)
+            return
+        key = (stream, *(record.get(c) for c in self._keys.get(stream, ())))
+        last = self._last.get(key)
+        if last is not None and last <= t < last + period:
+            self.dropped[stream] = self.dropped.get(stream, 0) + 1
+            return
+        self._last[key] = int(t)
+        self._write(stream, record)
 
 
 def read_log(path: str | Path) -> dict[str, Any]:

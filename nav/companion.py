@@ -279,7 +279,7 @@ def status_line(s: dict[str, Any], before: dict[str, Any], dt_s: float) -> str:
     rate = (s["frames"] - before.get("frames", 0)) / dt_s if dt_s > 0 else math.nan
     rejected = sum(s["frames_rejected"].values())
     withheld = sum(s["outputs_suppressed"].values())
-    parts = [f"link {'up' if s['connected'] else 'DOWN'}", f"GNSS {s['gnss']}",
+    parts = [f"link {'up' if s['connected'] else 'DOWN'}", f"GNSS {str(s['gnss']).removeprefix('GNSS_')}",
              f"camera {'open' if s['camera_open'] else 'CLOSED'} {rate:.1f} fps",
              f"frames {s['frames']} (rejected {rejected}{': ' + _counts(s['frames_rejected']) if rejected else ''}"
              f", stale {s['frames_stale']})", f"EKF steps {s['steps']}",

@@ -32,6 +32,9 @@ def gnss_drift_series(G: dict[str, np.ndarray], T: dict[str, np.ndarray]) -> tup
 
 
 def write_report(out_dir: Path, scn: Scenario, series: _Series, metrics: dict[str, Any]) -> None:
+    """``metrics.json`` and ``report.html`` of a simulated flight: the report of its logs
+    (:func:`sim.logreport.build_report`, the same as ``gsoe report``), followed by the figures only the simulator
+    has (the sample distance, one template-matching cycle, the drift per heading, from the run's memory)."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     write_metrics(out_dir, metrics)
@@ -52,30 +55,9 @@ def write_report(out_dir: Path, scn: Scenario, series: _Series, metrics: dict[st
         plt.close(fig)
         figs.append((name, caption))
 
-    if T["t_s"].size < 2:
+    if T["t_s"].size < 2 or not (out_dir / "ekf.csv").is_file():
         _write_html(out_dir, scn, metrics, figs)
         return
-    # fig. 6: trajectory
-    fig, ax = plt.subplots(figsize=(7, 6))
-    ax.plot(T["e"], T["n"], "k-", lw=1, label="truth")
-    if E["t_s"].size:
-        ax.plot(E["e"], E["n"], "b-", lw=0.8, label="EKF")
-    okg = G["ok"] > 0.5 if G["t_s"].size else np.zeros(0, bool)
-    if okg.any():
-        ax.plot(G["e"][okg], G["n"][okg], ".", ms=1, color="0.6", label="GNSS")
-    ax.set_xlabel("east [m]")
-    ax.set_ylabel("north [m]")
-    ax.set_aspect("equal", "datalim")
-    ax.legend()
-    save(fig, "trajectory.png", "Flight trajectory, top view (paper fig. 6)")
-    # fig. 7: height and airspeed
-    fig, ax = plt.subplots(2, 1, figsize=(8, 5), sharex=True)
-    ax[0].plot(T["t_s"], T["h"], "k-", lw=0.8)
-    ax[0].set_ylabel("height AGL [m]")
-    ax[1].plot(T["t_s"], T["tas"] * 3.6, "k-", lw=0.8)
-    ax[1].set_ylabel("TAS [km/h]")
-    ax[1].set_xlabel("time [s]")
-    save(fig, "altitude_airspeed.png", "Height above the reference ground and true airspeed (paper fig. 7)")
     # fig. 8: sample distance
     gs = np.hypot(T["vn"], T["ve"])
     rate = float(scn.camera.rate_hz)
@@ -120,36 +102,10 @@ def write_report(out_dir: Path, scn: Scenario, series: _Series, metrics: dict[st
     ax.set_ylabel("median drift [deg]")
     ax.legend()
     save(fig, "drift_vs_heading.png", "Median drift per 1-deg heading bin (paper fig. 10)")
-    # wind
-    if E["t_s"].size:
-        fig, ax = plt.subplots(2, 1, figsize=(8, 5), sharex=True)
-        for i, (key, sk, tk) in enumerate((("wn", "wn_sigma", "wsn"), ("we", "we_sigma", "wse"))):
-            ax[i].fill_between(E["t_s"], E[key] - E[sk], E[key] + E[sk], color="b", alpha=0.2, lw=0)
-            ax[i].plot(E["t_s"], E[key], "b-", lw=0.8, label="EKF +- 1 sigma")
-            ax[i].plot(T["t_s"], T[tk], "k-", lw=0.8, label="truth (steady)")
-            ax[i].plot(T["t_s"], T[key[:1] + key[1:]], color="0.7", lw=0.5, label="truth (total)")
-            if B["t_s"].size:
-                ok = (B["released"] > 0.5) & np.isfinite(B["ws"])
-                vel = -B["ws"][ok] * (np.cos(B["wd"][ok]) if i == 0 else np.sin(B["wd"][ok]))
-                ax[i].plot(B["t_s"][ok], vel, "r.", ms=2, label="paper chain (eq. 13-17)")
-            ax[i].set_ylabel(f"wind {'north' if i == 0 else 'east'} [m/s]")
-        ax[0].legend(fontsize=7)
-        ax[1].set_xlabel("time [s]")
-        save(fig, "wind.png", "Wind estimate (velocity of the air) with its 1-sigma band vs truth")
-        # position error
-        fig, ax = plt.subplots(figsize=(8, 3))
-        err = np.hypot(E["n"] - np.interp(E["t_s"], T["t_s"], T["n"]), E["e"] - np.interp(E["t_s"], T["t_s"], T["e"]))
-        sig = np.hypot(E["n_sigma"], E["e_sigma"])
-        ax.plot(E["t_s"], err, "b-", lw=0.8, label="horizontal position error")
-        ax.plot(E["t_s"], sig, "b:", lw=0.8, label="1-sigma")
-        for o in scn.sensors.gnss.outages:
-            ax.axvspan(o.start_s, o.start_s + o.length_s, color="r", alpha=0.1)
-        ax.set_yscale("log")
-        ax.set_xlabel("time [s]")
-        ax.set_ylabel("[m]")
-        ax.legend()
-        save(fig, "position_error.png", "EKF position error (GNSS outages shaded)")
-    _write_html(out_dir, scn, metrics, figs)
+    from sim.logreport import build_report
+
+    build_report(out_dir, title=f"Simulated flight: {scn.name} (seed {metrics.get('seed', '?')})",
+                 subtitle=scn.description, extra_figs=figs)
 
 
 def _focal(metrics: dict[str, Any]) -> float:

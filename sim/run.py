@@ -31,7 +31,7 @@ import numpy as np
 
 from common import metrics as M
 from common.angles import angle_diff
-from common.logio import RunLog
+from common.logio import Decimator, RunLog
 from common.samples import GsoeStep
 from fusion.config import ekf_config_from_raw
 from gsoe.camera import CameraModel
@@ -57,6 +57,11 @@ OUTAGE_END_GUARD_S = 0.5
 # NEES state: position N/E, velocity N/E, wind N/E.
 NEES_DOF = 6
 US_PER_S = 1_000_000
+# gsoe sim --log reports (the default of the command line): the shortest time between two written records of each
+# per-step stream (per aid source, and per fused/rejected, in aid_status.csv); the other streams are written whole.
+REPORT_LOG_PERIODS_S = {"imu": 0.1, "attitude": 0.1, "airspeed": 0.1, "baro": 0.1, "truth": 0.1, "ekf": 0.2,
+                        "aid_status": 0.2, "gsoe": 0.1}
+REPORT_LOG_KEYS = {"aid_status": ("source", "rejected")}
 
 
 @dataclass
@@ -150,9 +155,15 @@ class _Timers:
 
 
 def run_flight(scn: Scenario, *, seed: int, duration_s: float | None = None, out_dir: Path | None = None,
-               progress: bool = False, config_path: str | Path | None = None, full_frame: bool = False
-               ) -> dict[str, Any]:
-    """Fly ``scn`` with ``seed``; returns the metrics dict (also written to ``out_dir/metrics.json``)."""
+               progress: bool = False, config_path: str | Path | None = None, full_frame: bool = False,
+               log_detail: str = "full") -> dict[str, Any]:
+    """Fly ``scn`` with ``seed``; returns the metrics dict (also written to ``out_dir/metrics.json``).
+
+    ``log_detail``: ``"full"`` logs every sample and step; ``"reports"`` thins the per-step streams to
+    :data:`REPORT_LOG_PERIODS_S` (what the reports plot; a 2000 s flight in about 30 MB instead of 220 MB).  The
+    metrics are computed in memory from every step either way."""
+    if log_detail not in ("full", "reports"):
+        raise ValueError(f"log_detail must be 'full' or 'reports', got {log_detail!r}")
     wall0 = time.perf_counter()
     base_cfg, raw = load_gsoe_config(config_path)
     gcfg = gsoe_config_for(scn, base_cfg)
@@ -172,11 +183,14 @@ def run_flight(scn: Scenario, *, seed: int, duration_s: float | None = None, out
     renderer = CameraRenderer(true_camera, world)
     frame_buf = np.zeros((renderer.height_px, renderer.width_px), np.uint8)
     runlog = RunLog(out_dir) if out_dir is not None else None
+    log_write: Any = None
+    if runlog is not None:
+        log_write = runlog.write if log_detail == "full" else Decimator(runlog.write, REPORT_LOG_PERIODS_S,
+                                                                         REPORT_LOG_KEYS)
     series = _Series()
     timers = _Timers()
     # the simulated baro is a height above the reference point, which lies at ground level: ground level 0
-    pipe = NavPipeline(gcfg, ekf_cfg, pcfg, camera, sink=runlog.write if runlog is not None else None,
-                       timers=timers.s)
+    pipe = NavPipeline(gcfg, ekf_cfg, pcfg, camera, sink=log_write, timers=timers.s)
     in_outage: list[tuple[float, float]] = [(o.start_s, o.start_s + o.length_s) for o in scn.sensors.gnss.outages]
     n_steps = int(round(duration / scn.dt_s))
     truth = dyn.truth()
@@ -238,7 +252,7 @@ def run_flight(scn: Scenario, *, seed: int, duration_s: float | None = None, out
                                       scn.camera.gain, rng_cam, timers, frame_buf)
                 image = source() if full_frame else source
                 t0 = timers.add("render", t0)
-                _record_truth(series, truth, runlog)
+                _record_truth(series, truth, log_write)
                 timers.add("log", t0)
                 pipe.on_frame(r.frame.t_us, image)
             pipe.poll(truth.t_us)
@@ -305,7 +319,7 @@ def _record_result(series: _Series, res: FrameResult, capture_cycle: Callable[[G
     series.ekf_cov_pvw.append(e.cov_pvw)
 
 
-def _record_truth(series: _Series, tr: TruthState, runlog: RunLog | None) -> None:
+def _record_truth(series: _Series, tr: TruthState, log_write: Any) -> None:
     """Record the truth at one camera frame."""
     T = series.truth
     for key, v in (("t_s", tr.t_s), ("n", tr.pos_ned_m[0]), ("e", tr.pos_ned_m[1]), ("d", tr.pos_ned_m[2]),
@@ -314,8 +328,8 @@ def _record_truth(series: _Series, tr: TruthState, runlog: RunLog | None) -> Non
                    ("beta", tr.beta_rad), ("wn", tr.wind_ned_m_s[0]), ("we", tr.wind_ned_m_s[1]),
                    ("wsn", tr.wind_steady_ned_m_s[0]), ("wse", tr.wind_steady_ned_m_s[1]), ("h", tr.height_agl_m)):
         T[key].append(float(v))
-    if runlog is not None:
-        runlog.write("truth", _truth_record(tr))
+    if log_write is not None:
+        log_write("truth", _truth_record(tr))
 
 
 def _nees(E: dict[str, np.ndarray], T: dict[str, np.ndarray], cov_pvw: list[np.ndarray]) -> np.ndarray:

@@ -257,7 +257,7 @@ def test_clean_stop_exits_0_with_readable_status_lines(tmp_path):
     err = results[0][1]
     status = [ln.split("status: ", 1)[1] for ln in err.splitlines() if " status: " in ln]
     assert status, err
-    assert status[0].startswith("link DOWN | GNSS ") and "| camera CLOSED " in status[0], status[0]
+    assert status[0].startswith("link DOWN | GNSS DENIED | camera CLOSED "), status[0]
     assert "{" not in status[0]
 
 
