@@ -286,7 +286,8 @@ def run_flight(scn: Scenario, *, seed: int, duration_s: float | None = None, out
         gyro_bias_est_deg_s=np.degrees(pipe.gsoe.buffer.gyro_bias_b_rad_s).tolist(),
         sensor_errors=sensors.errors.to_dict(),
         pipeline={"ekf_started": pipe.status.ekf_started, "frames_late": pipe.status.frames_late,
-                  "estimator_errors": pipe.status.estimator_errors},
+                  "estimator_errors": pipe.status.estimator_errors,
+                  "samples_rejected": dict(pipe.plausibility.status.rejected)},   # pipeline.plausibility
     )
     if out_dir is not None:
         from sim.report import write_report
