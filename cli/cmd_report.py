@@ -17,8 +17,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import importlib.util
+    import sys
+
     from sim.logreport import build_report
 
+    if args.mcap and importlib.util.find_spec("mcap") is None:
+        print("gsoe report: --mcap needs the mcap package: pip install 'gsoe-nav[report]'", file=sys.stderr)
+        return 2
     folder = Path(args.logdir)
     if not folder.is_dir():
         raise FileNotFoundError(2, "no such folder", str(folder))

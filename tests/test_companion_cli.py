@@ -272,3 +272,16 @@ def test_sim_lists_scenarios_and_names_them_for_an_unknown_one(tmp_path):
     assert unknown.returncode == 2 and "Traceback" not in err
     assert err.strip().splitlines() == [f"gsoe sim: configuration error: no_such_flight: unknown scenario; known: "
                                         f"{', '.join(names)} (or a path to a scenario file)"]
+
+
+def test_status_line_reads_as_one_line():
+    from nav.companion import status_line
+
+    before = {"frames": 300}
+    s = {"connected": True, "gnss": "GNSS_OK", "camera_open": True, "frames": 450, "frames_rejected": {"frozen": 2},
+         "frames_stale": 1, "steps": 440, "estimator_errors": 0, "outputs_sent": 900,
+         "outputs_suppressed": {"estimate invalid": 12}, "commands": 0, "track_reports": 0,
+         "telemetry_rejected": {}, "sent": {}, "send_errors": {}, "send_latency_ms": {}}
+    line = status_line(s, before, 5.0)
+    assert line == ("link up | GNSS OK | camera open 30.0 fps | frames 450 (rejected 2: frozen 2, stale 1) | "
+                    "EKF steps 440 | estimates sent 900, withheld 12 (estimate invalid 12)")
