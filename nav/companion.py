@@ -20,7 +20,9 @@ One synchronous loop (the link's asyncio runs in its own thread, the camera read
    ``[companion.tracking]``) and send the heading command (:mod:`nav.guidance`);
 6. log every input, estimate and output through :class:`common.logio.RunLog` (append-only, flushed at least every
    ``log_flush_s`` <= 1 s, so ``kill -9`` loses at most that), and every state change (camera lost/opened, link
-   lost/restored, estimate valid/invalid with its reason, telemetry rejected, GNSS state) to ``events.csv``.
+   lost/restored, estimate valid/invalid with its reason, telemetry rejected, GNSS state) to ``events.csv``; each
+   new offset of the samples' clock (per telemetry kind: ``t_us = autopilot us + offset_us``, :mod:`nav.link`) to
+   ``clock_sync.csv``, so that the log can be set against the vehicle's own time.
 
 Nothing in the loop may end it except a stop request: bad frames, bad telemetry, a dead link (MAVSDK reconnects by
 itself; the first connection is retried every ``reconnect_s``), a lost camera (reopened every
@@ -495,6 +497,7 @@ class Companion:
         self._last_announce = -math.inf
         self._link_up: bool | None = None
         self._rejected_seen: dict[str, int] = {}
+        self._offsets_logged: dict[str, int] = {}
         self._guiding = False
         self._last_output = -math.inf
         lc = self.cfg.link
@@ -721,6 +724,10 @@ class Companion:
                 self._event("telemetry_rejected", f"{key}: {n - self._rejected_seen.get(key, 0)} more ({n} total)",
                             logging.WARNING)
                 self._rejected_seen[key] = n
+        for kind, sync in list(self.link.guard._sync.items()):  # samples' t_us = autopilot us + offset_us
+            if sync.offset_us is not None and sync.offset_us != self._offsets_logged.get(kind):
+                self._offsets_logged[kind] = sync.offset_us
+                self._log("clock_sync", {"t_us": self.link.now_us(), "kind": kind, "offset_us": sync.offset_us})
 
     def status(self) -> dict[str, Any]:
         return {"connected": self.link.stats.connected, "gnss": self.monitor.state.name,

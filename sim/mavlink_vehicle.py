@@ -24,6 +24,10 @@ Dynamics (``VehicleConfig.dynamics``)
     :class:`sim.sensors.SensorSuite` with the true sensor errors drawn from a scenario's distributions
     (``VehicleConfig.scenario``, default ``paper_sil``; its mission and GNSS outages are not used, its wind is
     replaced by ``wind_ned_m_s`` at every height, turbulence on request).  This is the SIL vehicle.
+    With ``fly_scenario`` (``--fly-scenario``) it flies the scenario itself instead, as ``gsoe sim`` does
+    (:func:`sim.flight.build_flight`: the mission from its start state, in AUTO mode, so heading commands are
+    refused; its wind with shear, turbulence and gusts; its GNSS outages; its ground texture; run_flight's
+    seeding from ``--seed``, so that ``gsoe sim`` on the same seed flies the same truth with the same sensor errors).
     ``"kinematic"``: :class:`KinematicPlane`, a coordinated-turn point mass at constant airspeed and height in a
     steady wind, with ideal airspeed and baro and white IMU/GNSS noise: a light vehicle for link tests.
 
@@ -109,6 +113,7 @@ ISA_LAPSE_K_M = 0.0065
 ISA_EXP = 5.25588
 AIR_DENSITY_KG_M3 = 1.225
 ARDUPLANE_MODE_GUIDED = 15
+ARDUPLANE_MODE_AUTO = 10
 MAV_RESULT_ACCEPTED = 0
 MAV_RESULT_DENIED = 2
 MAV_RESULT_UNSUPPORTED = 3
@@ -194,6 +199,8 @@ class VehicleConfig:
     gnss_jump_m: float = 300.0
     fuzz_count: int = 10_000
     config_path: str | None = None
+    fly_scenario: bool = False
+    truth_log_dir: str | None = None
     rates_hz: dict[str, float] = field(default_factory=lambda: {
         "HEARTBEAT": 1.0, "ATTITUDE": 50.0, "IMU": 50.0, "SCALED_PRESSURE": 10.0, "VFR_HUD": 10.0,
         "GPS_RAW_INT": 5.0, "GLOBAL_POSITION_INT": 10.0, "FRAME": 30.0, "TRACK": 10.0})
@@ -208,6 +215,8 @@ class VehicleConfig:
                 raise ValueError(f"VehicleConfig.{name} must be in [{lo}, {hi}], got {v!r}")
         if self.gnss_outage_range_m > 0 and self.target_ned_m is None:
             raise ValueError("VehicleConfig.gnss_outage_range_m needs target_ned_m")
+        if self.fly_scenario and self.dynamics != "jsbsim":
+            raise ValueError("VehicleConfig.fly_scenario needs dynamics = 'jsbsim'")
 
 
 # ------------------------------------------------------------------------------------------------ dynamics
@@ -350,15 +359,29 @@ class KinematicPlant:
 
 
 class JsbsimPlant:
-    """JSBSim dynamics, the simulator's autopilot in heading hold and the scenario's sensor models."""
+    """JSBSim dynamics, the simulator's autopilot in heading hold and the scenario's sensor models; with
+    ``cfg.fly_scenario`` the scenario's own flight (:func:`sim.flight.build_flight` with ``seed``)."""
 
-    def __init__(self, cfg: VehicleConfig, rng: np.random.Generator) -> None:
+    def __init__(self, cfg: VehicleConfig, rng: np.random.Generator, seed: int = 0) -> None:
         from sim.autopilot import Autopilot
         from sim.dynamics import DynamicsParams, FlightDynamics
-        from sim.run import wind_params
+        from sim.flight import build_flight, wind_params
         from sim.scenario import load_scenario, scenario_with_overrides
         from sim.sensors import SensorSuite
 
+        self.cfg = cfg
+        self._frames_on = cfg.rates_hz.get("FRAME", 30.0) > 0
+        if cfg.fly_scenario:
+            scn = load_scenario(cfg.scenario)
+            flight = build_flight(scn, seed)
+            self.scenario = scn
+            self.dt_s = scn.dt_s
+            self.texture = cfg.texture or scn.terrain.texture
+            self.frame_noise_std = scn.camera.noise_std if cfg.frame_noise_std is None else cfg.frame_noise_std
+            self.exposure_s = scn.camera.exposure_s
+            self.dyn, self.autopilot, self.sensors = flight.dyn, flight.autopilot, flight.sensors
+            self._truth = self.dyn.truth()
+            return
         wn, we = cfg.wind_ned_m_s
         speed = math.hypot(wn, we)
         overrides: dict[str, Any] = {
@@ -371,7 +394,6 @@ class JsbsimPlant:
             overrides["camera.rate_hz"] = 1.0
         scn = scenario_with_overrides(load_scenario(cfg.scenario), overrides)
         self.scenario = scn
-        self.cfg = cfg
         self.dt_s = scn.dt_s
         self.texture = cfg.texture or DEFAULT_TEXTURE
         self.frame_noise_std = scn.camera.noise_std if cfg.frame_noise_std is None else cfg.frame_noise_std
@@ -384,7 +406,6 @@ class JsbsimPlant:
         self.autopilot.set_heading_command(math.radians(cfg.start_yaw_deg), cfg.height_agl_m, cfg.tas_m_s)
         self.sensors = SensorSuite(scn.sensors, scn.camera, rng_sens)
         self._truth = self.dyn.truth()
-        self._frames_on = cfg.rates_hz.get("FRAME", 30.0) > 0
 
     def command_heading(self, heading_rad: float, accel_limit_m_s2: float) -> None:
         self.autopilot.set_heading_command(heading_rad, self.cfg.height_agl_m, self.cfg.tas_m_s)
@@ -666,7 +687,8 @@ class MavlinkVehicle:
                  frame_server: FrameServer | None = None, gcs_url: str | None = None, seed: int = 0) -> None:
         self.cfg = cfg
         rng_plant, self.rng_noise, rng_cam, self.rng_fuzz = rng.spawn(4)
-        self.plant: Plant = JsbsimPlant(cfg, rng_plant) if cfg.dynamics == "jsbsim" else KinematicPlant(cfg, rng_plant)
+        self.plant: Plant = (JsbsimPlant(cfg, rng_plant, seed) if cfg.dynamics == "jsbsim"
+                             else KinematicPlant(cfg, rng_plant))
         self.conn = mavutil.mavlink_connection(url, source_system=1, source_component=1, dialect="ardupilotmega")
         self.gcs = mavutil.mavlink_connection(gcs_url, source_system=1, source_component=1,
                                               dialect="ardupilotmega") if gcs_url else None
@@ -682,7 +704,14 @@ class MavlinkVehicle:
 
             cam = CameraModel.from_config(load_gsoe_config(cfg.config_path)[0].camera)
             self.tracking_camera = forward_camera(cam, math.radians(cfg.tracking_depression_deg))
-        self.mode = ARDUPLANE_MODE_GUIDED
+        self.mode = ARDUPLANE_MODE_AUTO if cfg.fly_scenario else ARDUPLANE_MODE_GUIDED
+        self.truth_log: Any = None
+        if cfg.truth_log_dir is not None:  # truth.csv, the records gsoe sim writes, at every camera exposure
+            from common.logio import RunLog
+            from sim.run import _truth_record
+
+            self.truth_log = RunLog(cfg.truth_log_dir)
+            self._truth_record = _truth_record
         self.received: dict[str, int] = {}
         self.last: dict[str, dict[str, Any]] = {}
         self.bad_data = 0
@@ -1009,6 +1038,8 @@ class MavlinkVehicle:
             self._baro = r.baro
         if r.frame is not None:
             self._queue_frame(tr, r.frame)
+            if self.truth_log is not None:
+                self.truth_log.write("truth", self._truth_record(tr))
         self._deliver_frames(t)
         silent = self.fault("link_silence") is not None
         if not silent:
@@ -1067,6 +1098,8 @@ class MavlinkVehicle:
             self.gcs.close()
         if self.frame_server is not None:
             self.frame_server.close()
+        if self.truth_log is not None:
+            self.truth_log.close()
 
 
 # ------------------------------------------------------------------------------------------------ CLI
@@ -1094,6 +1127,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--dynamics", choices=("kinematic", "jsbsim"), default="kinematic")
     ap.add_argument("--scenario", default="paper_sil", help="jsbsim: scenario whose sensor models are used")
+    ap.add_argument("--fly-scenario", action="store_true",
+                    help="jsbsim: fly --scenario itself (mission, wind, GNSS outages, texture) seeded as gsoe sim")
+    ap.add_argument("--truth-log", help="write the truth (truth.csv, as gsoe sim logs it) to this folder")
     ap.add_argument("--turbulence", action="store_true", help="jsbsim: the scenario's Dryden turbulence on")
     ap.add_argument("--tas-m-s", type=float, default=20.0)
     ap.add_argument("--height-agl-m", type=float, default=100.0)
@@ -1125,7 +1161,8 @@ def main(argv: list[str] | None = None) -> int:
                         target_ned_m=args.target_ned_m, tracking_depression_deg=args.tracking_depression_deg,
                         tracker_noise_px=args.tracker_noise_px, texture=args.texture,
                         frame_latency_s=args.frame_latency_s, faults=tuple(args.fault), fuzz_count=args.fuzz_count,
-                        config_path=args.config, rates_hz=rates)
+                        config_path=args.config, fly_scenario=args.fly_scenario, truth_log_dir=args.truth_log,
+                        rates_hz=rates)
     rng = np.random.default_rng(args.seed)
     server = None
     if args.frame_port is not None:
