@@ -20,6 +20,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from cli.argtypes import int_at_least, positive_float
 from common.config import ConfigError
 from gsoe.calibration import MIN_BOARDS, CalibrationError, calibrate, find_board, reprojection_errors
 from gsoe.config import CameraConfig
@@ -37,36 +38,16 @@ def _board(text: str) -> tuple[int, int]:
     return cols, rows
 
 
-def _positive(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a number, got {text!r}") from None
-    if not (math.isfinite(v) and v > 0):
-        raise argparse.ArgumentTypeError(f"must be positive, got {text!r}")
-    return v
-
-
-def _non_negative_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be an integer, got {text!r}") from None
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {text!r}")
-    return v
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("images", nargs="+", type=Path, help="chessboard images (any format OpenCV reads)")
     parser.add_argument("--board", type=_board, required=True, help="inner corners COLSxROWS, e.g. 8x6")
-    parser.add_argument("--square", type=_positive, default=1.0,
+    parser.add_argument("--square", type=positive_float, default=1.0,
                         help="square side (any unit; only scales the board poses), default 1")
     parser.add_argument("--model", choices=("fisheye", "pinhole"), default="fisheye", help="camera model")
     parser.add_argument("--out", type=Path, required=True, help="camera file to write (TOML)")
-    parser.add_argument("--holdout", type=_non_negative_int, default=0,
+    parser.add_argument("--holdout", type=int_at_least(0), default=0,
                         help="leave the last N found boards out of the calibration and report their errors")
-    parser.add_argument("--focal-guess", type=_positive, default=None,
+    parser.add_argument("--focal-guess", type=positive_float, default=None,
                         help="fisheye starting focal length in pixels (default: image width / pi)")
     parser.add_argument("--mount-rpy-deg", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("R", "P", "Y"),
                         help="the camera's mount on top of the nominal belly mounting (roll, pitch, yaw, deg; any "

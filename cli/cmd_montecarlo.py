@@ -19,56 +19,34 @@ import argparse
 import logging
 import math
 import sys
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
+
+from cli.argtypes import int_at_least, positive_float
 
 log = logging.getLogger(__name__)
 
 DEFAULT_OUT_ROOT = Path("out") / "montecarlo"
 
 
-def _positive_float(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a number, got {text!r}") from None
-    if not (math.isfinite(v) and v > 0):
-        raise argparse.ArgumentTypeError(f"must be positive, got {text!r}")
-    return v
-
-
-def _int_at_least(lo: int) -> Callable[[str], int]:
-    def parse(text: str) -> int:
-        try:
-            v = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"must be an integer, got {text!r}") from None
-        if v < lo:
-            raise argparse.ArgumentTypeError(f"must be >= {lo}, got {text!r}")
-        return v
-
-    return parse
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("-n", "--runs", dest="n_runs", type=_int_at_least(1), default=None,
+    parser.add_argument("-n", "--runs", dest="n_runs", type=int_at_least(1), default=None,
                         help="number of runs (default: the spec's n_runs)")
     parser.add_argument("--scenario", default=None, help="base scenario name or file (default: the spec's)")
     parser.add_argument("--spec", default=None,
                         help="campaign spec (config/montecarlo/*.toml name or path; default: default)")
-    parser.add_argument("--duration", type=_positive_float, default=None,
+    parser.add_argument("--duration", type=positive_float, default=None,
                         help="each flight's length in seconds (default: the spec's, else the base scenario's)")
     parser.add_argument("--scheduler", default=None, help="Dask scheduler address tcp://HOST:PORT (default: local)")
-    parser.add_argument("--workers", type=_int_at_least(0), default=None,
+    parser.add_argument("--workers", type=int_at_least(0), default=None,
                         help="local worker processes (default: all cores; 0 flies in this process)")
     parser.add_argument("--out", type=Path, default=None, help="campaign folder (default out/montecarlo/NAME-seedS)")
     parser.add_argument("--resume", action="store_true", help="complete the campaign in --out, skipping finished runs")
     parser.add_argument("--retry-failed", action="store_true",
                         help="with --resume: fly the runs recorded as failed again")
-    parser.add_argument("--only", type=_int_at_least(0), default=None, metavar="I",
+    parser.add_argument("--only", type=int_at_least(0), default=None, metavar="I",
                         help="re-fly run I of the campaign in --out alone and compare with its record")
-    parser.add_argument("--seed", type=_int_at_least(0), default=None, help="base seed (default: the spec's)")
+    parser.add_argument("--seed", type=int_at_least(0), default=None, help="base seed (default: the spec's)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
