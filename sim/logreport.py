@@ -77,8 +77,14 @@ GOALS: tuple[Goal, ...] = (
          "m/s"),
 )
 # other figures shown above the folded table when present
-HEADLINE = ("valid_frac", "gnss_unused_s", "dr_error_m", "dr_distance_m", "pos_error_m_max", "frames",
-            "realtime_factor", "sim_s", "duration_s")
+HEADLINE = {"valid_frac": "estimate valid, fraction of the EKF records",
+            "gnss_unused_s": "time without a fused GNSS fix [s]",
+            "dr_error_m": "position error at the first fix after the outage [m]",
+            "dr_distance_m": "distance flown without GNSS [m]",
+            "pos_error_m_final": "position error vs truth at the end of the outage [m]",
+            "pos_error_m_max": "largest position error vs truth in the outage [m]",
+            "frames": "camera frames", "realtime_factor": "simulated seconds per second of computing",
+            "sim_s": "simulated time [s]", "duration_s": "length of the log [s]"}
 
 
 # ------------------------------------------------------------------------------------------------ reading
@@ -561,7 +567,7 @@ def write_page(folder: Path, title: str, subtitle: str, metrics: Mapping[str, An
     """``report.html``: goal table, headline figures, figures, the other scalar metrics folded, links to the
     series (module docstring)."""
     goal_keys = {g.key for g in GOALS}
-    head = [(k, metrics[k]) for k in HEADLINE if k in metrics and _scalar(metrics[k])]
+    head = [(f"{text} ({k})", metrics[k]) for k, text in HEADLINE.items() if k in metrics and _scalar(metrics[k])]
     rest = {k: v for k, v in metrics.items() if _scalar(v) and k not in goal_keys and k not in HEADLINE}
     series = sorted(k for k, v in metrics.items() if not _scalar(v))
     outage_text = ("; ".join(f"{a:.0f}-{b:.0f} s" for a, b in outages_s) if outages_s else "none")
@@ -607,8 +613,10 @@ def build_report(folder: str | Path, *, title: str | None = None, subtitle: str 
         metrics = derived
         write_metrics(L.folder, metrics)
     else:
+        # the run's own dead-reckoning figures (gsoe sim: against truth) are not mixed with the ones against GNSS
+        own_dr = isinstance(metrics.get("dr_error_pct_of_distance"), int | float)
         for k in ("valid_frac", "gnss_unused_s", "dr_error_m", "dr_distance_m", "wind_vs_autopilot_rmse_m_s"):
-            if k in derived and k not in metrics:
+            if k in derived and k not in metrics and not (own_dr and k.startswith("dr_")):
                 metrics[k] = derived[k]
     figs = _Figures(L).all() + list(extra_figs)
     name = title or f"{L.kind.capitalize()}: {L.folder.name}"
