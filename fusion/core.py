@@ -120,14 +120,16 @@ class FilterCore:
         # partial-update (Schmidt) states: their rows of every gain are scaled down (module docstring)
         self._gain_scale = np.ones(S.dim)
         self._schmidt: list[tuple[int, int, float]] = []
+        self._partial: list[tuple[int, float]] = []
 
     # ----------------------------------------------------------------------------------------------------------
     def predict(self, x_new: Vec, F: Mat, Q: Mat, add_var: Sequence[tuple[int, float]] = ()) -> None:
         """``x = x_new``, ``P = F P F' + Q`` symmetrised (``F P F'`` is symmetric only up to rounding), then the
         per-prediction variances ``add_var`` (index, variance) on the diagonal."""
         self.x = x_new
-        P = np.dot(F, self.P).dot(F.T) + Q
-        P += P.T
+        FPF = np.dot(F, self.P).dot(F.T)
+        FPF += Q
+        P = FPF + FPF.T                  # (not P += P.T: NumPy would first copy the overlapping transpose)
         P *= 0.5
         for i, q in add_var:
             P[i, i] += q
@@ -144,6 +146,7 @@ class FilterCore:
         self._gain_scale[i] = fraction
         part = [(int(k), 1.0 - float(self._gain_scale[k])) for k in np.flatnonzero(self._gain_scale != 1.0)]
         self._schmidt = [(a, b, ca * cb) for a, ca in part for b, cb in part]   # (i, j, (1 - g_i)(1 - g_j))
+        self._partial = [(k, float(self._gain_scale[k])) for k, _ in part]      # (i, g_i) where g_i != 1
 
     # ----------------------------------------------------------------------------------------------------------
     def update(self, row: StatusRow, t_us: int, z: Sequence[float] | Vec, m: Linearised, gate_nis: float) -> bool:
@@ -193,7 +196,7 @@ class FilterCore:
             L = PHt.dot(CiT)
             A = L.dot(L.T)
             dx = L.dot(np.array(w))
-            check = float(A.trace())
+            check = float(np.vdot(L, L))                  # trace(A), whose finiteness is all that is asked
         return self._commit(row, t_us, dx, A, check, innov, var, ratio)
 
     def _prior_terms(self, z: Sequence[float] | Vec, m: Linearised) -> tuple[Mat, list[float], list[list[float]],
@@ -230,7 +233,8 @@ class FilterCore:
         term by ``|P_ij|``-sized values."""
         P_new = self.P - A
         if self._schmidt:
-            dx *= self._gain_scale
+            for i, g in self._partial:             # D dx
+                dx[i] *= g
             for i, j, cc in self._schmidt:         # partial-update states: P_ij += (1-g_i)(1-g_j) A_ij
                 P_new[i, j] += cc * A[i, j]
         if not math.isfinite(check):

@@ -22,7 +22,7 @@ from scipy.constants import g as STANDARD_GRAVITY_M_S2
 from common.samples import AttitudeSample
 from fusion.config import EkfConfig
 from fusion.core import FilterCore
-from fusion.process import S_PER_US, US_PER_S, ImuIncrement, ProcessModel, rot_rows
+from fusion.process import S_PER_US, US_PER_S, ProcessModel, rot_rows
 from fusion.status import REASON_IMU_GAP, StatusRow
 
 Mat = NDArray[np.float64]
@@ -183,11 +183,9 @@ class ImuIntegrator:
             self._fold()
         T_us = self.t_in_us - self.t_x_us
         if T_us > 0:
-            a = self._acc
-            inc = ImuIncrement(T_us * S_PER_US, a[0:3], [a[6:9], a[9:12], a[12:15]], a[3:6],
-                               [a[15:18], a[18:21], a[21:24]], a[24:27], a[27:30])
             core = self._core
-            x_new, Q, add_var = self._process.step(core.x, core.P, inc)
+            # the sums go to the process model as they are (the increment carries only the interval)
+            x_new, Q, add_var = self._process.step_sums(core.x, core.P, T_us * S_PER_US, self._acc)
             core.predict(x_new, self._process.F, Q, add_var)
             self._acc = [0.0] * _ACC_LEN
             self.t_x_us = self.t_in_us

@@ -69,6 +69,7 @@ _Q_WW, _Q_WM, _Q_MW = _flat(_I_WIND, _I_WIND), _flat(_I_WIND, _I_WMEAN), _flat(_
 _P_TURB = _flat([_I_WIND[0], _I_WIND[0], _I_WMEAN[0], _I_WIND[1], _I_WIND[1], _I_WMEAN[1]],
                 [_I_WIND[0], _I_WMEAN[0], _I_WMEAN[0], _I_WIND[1], _I_WMEAN[1], _I_WMEAN[1]])
 _X_TURB = np.array([_I_WIND[0], _I_WIND[1], _I_WMEAN[0], _I_WMEAN[1]])
+_WN, _WE, _MN, _ME = (int(i) for i in _X_TURB)
 # flat indices of the IMU-dependent entries of F, in the order _propagate_into lists them: d pos / d vel (N, E, D),
 # d pos / d accel_bias_b (3 x 3, row by row), d vel / d accel_bias_b, d(pos_n, pos_e, vel_n, vel_e) / d yaw_bias,
 # d pos / d att_delay, d vel / d att_delay
@@ -146,7 +147,7 @@ def _moments(inc: ImuIncrement) -> tuple[Any, ...]:
     """The increment's sums as floats: ``sum R dt`` (rows), ``sum R dt (T - t_mid)`` (rows), ``sum R f dt``,
     ``sum R f dt (T - t_mid)``, the delay's ``sum R (w x f) dt`` and ``sum R (w x f) dt (T - t_mid)`` (or None)."""
     T = inc.dt_s
-    M = _floats(inc.int_R_nb)                                                 # sum R dt
+    M = inc.int_R_nb if type(inc.int_R_nb) is list else _floats(inc.int_R_nb)     # sum R dt
     (u0, u1, u2), (w0, w1, w2), (z0, z1, z2) = M
     dv0, dv1, dv2 = _floats(inc.dv_ahrs_n)                                    # sum R f dt
     if inc.dv_moment_n is None or inc.int_R_nb_moment is None:
@@ -170,15 +171,28 @@ def _moments(inc: ImuIncrement) -> tuple[Any, ...]:
     return M, Mq, (dv0, dv1, dv2), dq, (k0, k1, k2), j
 
 
-def _propagate_into(x: Vec, inc: ImuIncrement, F: Mat, wind_decay: float = 1.0) -> Vec:
-    """Mean propagation over one increment; returns the new state and writes the IMU-dependent entries of the Jacobian
-    ``F = d x_new / d x`` into ``F`` (its other entries must be those of the identity).
+def moments_of_sums(T: float, a: Sequence[float]) -> tuple[Any, ...]:
+    """:func:`_moments` of the integrator's flat sums ``a`` over ``T`` seconds (:class:`fusion.imu.ImuIntegrator`:
+    ``sum R f dt`` (3), ``sum R f dt t_mid`` (3), ``sum R dt`` (9, row by row), ``sum R dt t_mid`` (9),
+    ``sum R (w x f) dt`` (3), ``sum R (w x f) dt t_mid`` (3)) without building an :class:`ImuIncrement`; the same
+    arithmetic."""
+    (dv0, dv1, dv2, n0, n1, n2, u0, u1, u2, w0, w1, w2, z0, z1, z2, a0, a1, a2, e0, e1, e2, d0, d1, d2,
+     k0, k1, k2, j0, j1, j2) = a
+    Mq = [[T * u0 - a0, T * u1 - a1, T * u2 - a2], [T * w0 - e0, T * w1 - e1, T * w2 - e2],
+          [T * z0 - d0, T * z1 - d1, T * z2 - d2]]
+    return ([[u0, u1, u2], [w0, w1, w2], [z0, z1, z2]], Mq, (dv0, dv1, dv2), (T * dv0 - n0, T * dv1 - n1, T * dv2 - n2),
+            (k0, k1, k2), (T * k0 - j0, T * k1 - j1, T * k2 - j2))
+
+
+def _propagate_into(x: Vec, T: float, moments: tuple[Any, ...], F: Mat, wind_decay: float = 1.0,
+                    xl: list[float] | None = None) -> Vec:
+    """Mean propagation over ``T`` seconds of an increment's :func:`_moments`; returns the new state and writes the
+    IMU-dependent entries of the Jacobian ``F = d x_new / d x`` into ``F`` (its other entries must be those of the
+    identity).  ``xl``: ``x.tolist()`` when already at hand.
 
     Scalar arithmetic on Python floats: the 3-vectors and 3 x 3 blocks here cost ~1-2 µs per NumPy call."""
-    T = inc.dt_s
-    ((u0, u1, u2), (w0, w1, w2), (z0, z1, z2)), ((a0, a1, a2), (e0, e1, e2), (d0, d1, d2)), dv, dq, k, j = \
-        _moments(inc)
-    xl = x.tolist()
+    ((u0, u1, u2), (w0, w1, w2), (z0, z1, z2)), ((a0, a1, a2), (e0, e1, e2), (d0, d1, d2)), dv, dq, k, j = moments
+    xl = x.tolist() if xl is None else list(xl)
     b0, b1, b2 = xl[_BA.start], xl[_BA.start + 1], xl[_BA.start + 2]
     m0 = dv[0] - (u0 * b0 + u1 * b1 + u2 * b2)            # sum R (f - b) dt
     m1 = dv[1] - (w0 * b0 + w1 * b1 + w2 * b2)
@@ -206,7 +220,7 @@ def _propagate_into(x: Vec, inc: ImuIncrement, F: Mat, wind_decay: float = 1.0) 
     xl[iv + 1] = ve + me
     xl[iv + 2] = vd + m2 + STANDARD_GRAVITY_M_S2 * T
     # -R_z(-yaw_bias) @ Mq (position rows; Mq = [a; e; d]) and -R_z(-yaw_bias) @ M (velocity rows; M = [u; w; z])
-    F.flat[_F_IMU] = (
+    F.reshape(-1)[_F_IMU] = (
         T, T, T,
         -(c * a0 + s * e0), -(c * a1 + s * e1), -(c * a2 + s * e2),
         s * a0 - c * e0, s * a1 - c * e1, s * a2 - c * e2,
@@ -228,7 +242,7 @@ def _propagate_into(x: Vec, inc: ImuIncrement, F: Mat, wind_decay: float = 1.0) 
 def propagate(x: Vec, inc: ImuIncrement) -> tuple[Vec, Mat]:
     """Mean propagation over one increment and its Jacobian ``F = d x_new / d x`` (n x n)."""
     F = _EYE.copy()
-    return _propagate_into(x, inc, F), F
+    return _propagate_into(x, inc.dt_s, _moments(inc), F), F
 
 
 _NoiseTerms = tuple[Mat, float, float, float, float, float, float]
@@ -309,7 +323,7 @@ class ProcessModel:
                                     -math.expm1(-2.0 * dt_s / tau_w))
         return hit
 
-    def _adapt_turbulence(self, x: Vec, P: Mat, g: float, a: float, c: float) -> float:
+    def _adapt_turbulence(self, x: Vec, P: Mat, g: float, a: float, c: float, xl: list[float] | None = None) -> float:
         """Move the turbulence variance in use over one prediction; returns the turbulence's noise over it.
 
         Turbulence intensity: E[d^2] of the estimated turbulence d = wind - mean (its square plus
@@ -321,7 +335,10 @@ class ProcessModel:
         v0 = self.turb_var
         if self._cfg.wind.turb_adapt_time_s <= 0.0:
             return v0 * g
-        wn, we, mn, me = x.take(_X_TURB).tolist()
+        if xl is None:
+            wn, we, mn, me = x.take(_X_TURB).tolist()
+        else:
+            wn, we, mn, me = xl[_WN], xl[_WE], xl[_MN], xl[_ME]
         ann, anm, amm, aee, aem, bmm = P.take(_P_TURB).tolist()
         dn, de = wn - mn, we - me
         d2 = 0.5 * (dn * dn + de * de + self._cfg.wind.turb_adapt_var_weight
@@ -332,12 +349,22 @@ class ProcessModel:
     def step(self, x: Vec, P: Mat, inc: ImuIncrement) -> tuple[Vec, Mat, tuple[tuple[int, float], ...]]:
         """One prediction's mean, ``Q`` and the diagonal noise added after ``F P F' + Q`` (index, variance);
         :attr:`F` is left at the prior state's Jacobian."""
-        Q, e, g, a, c, e_w, g_w = self._noise_and_decay(inc.dt_s)
-        q_turb = self._adapt_turbulence(x, P, g, a, c)
+        return self._step(x, P, inc.dt_s, _moments(inc))
+
+    def step_sums(self, x: Vec, P: Mat, dt_s: float, sums: Sequence[float]
+                  ) -> tuple[Vec, Mat, tuple[tuple[int, float], ...]]:
+        """:meth:`step` over ``dt_s`` from the integrator's flat sums (:func:`moments_of_sums`)."""
+        return self._step(x, P, dt_s, moments_of_sums(dt_s, sums))
+
+    def _step(self, x: Vec, P: Mat, dt_s: float, moments: tuple[Any, ...]
+              ) -> tuple[Vec, Mat, tuple[tuple[int, float], ...]]:
+        Q, e, g, a, c, e_w, g_w = self._noise_and_decay(dt_s)
+        xl = x.tolist()
+        q_turb = self._adapt_turbulence(x, P, g, a, c, xl)
         # the vertical wind's turbulence (sigma a fixed ratio of the horizontal one's in use)
         q_wd = self._wd_ratio2 * self.turb_var * g_w
         # the turbulence relaxes towards the mean: wind' = e wind + (1 - e) mean; the vertical wind towards 0
-        x_new = _propagate_into(x, inc, self.F, e)
+        x_new = _propagate_into(x, dt_s, moments, self.F, e, xl)
         x_new[_I_WD] *= e_w
         if e != self._decay:
             self.F.flat[_F_WIND] = (e, e, 1.0 - e, 1.0 - e)

@@ -100,7 +100,8 @@ class Timeline:
             return
         t = entry[0]
         self.newest_imu_us = t
-        self._imu.pushed(att)
+        if self._imu.att is None:                 # the output's heading until the horizon reaches a sample
+            self._imu.pushed(att)
         q = self._imu_q
         q.append(entry)
         # Due samples are processed in batches (the result is the same as one by one): now if a measurement is
@@ -116,7 +117,7 @@ class Timeline:
         this is the per-sample path."""
         try:
             t, ta = imu.t_us, att.t_us
-            if not (is_int(t) and is_int(ta)):
+            if not ((type(t) is int or is_int(t)) and (type(ta) is int or is_int(ta))):
                 return None, REASON_BAD_TIME
             a, g = imu.accel_b_m_s2, imu.gyro_b_rad_s
             if not (type(a) is np.ndarray and type(g) is np.ndarray):

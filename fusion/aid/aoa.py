@@ -79,12 +79,17 @@ class AoaAid(AidSource):
 
     def __init__(self, *args: Any) -> None:
         super().__init__(*args)
-        self._gain_m = self.cfg.airframe.aoa_accel_gain_m if self.cfg.aoa.enabled else 0.0
-        self._max_rad = math.radians(self.cfg.aoa.max_deg)
+        c = self.cfg
+        self._gain_m = c.airframe.aoa_accel_gain_m if c.aoa.enabled else 0.0
+        self._max_rad = math.radians(c.aoa.max_deg)
+        # the configuration's derived numbers, once (this runs with every airspeed sample): those of
+        # LiftAngleOfAttack.measured and LiftAngleOfAttack.variance
+        self._min_m_s, self._gate = c.airspeed.min_m_s, c.gates.aoa_nis
+        self._lift = (c.airframe.aoa_accel_gain_m, c.airframe.aoa_zero_lift_rad)
+        self._var_terms = (c.aoa.sigma_rad**2, (c.aoa.turb_noise_factor * c.wind.vertical_sigma_ratio)**2)
 
     def control(self, t_us: int, tas: float) -> bool:
-        c = self.cfg
-        if tas < c.airspeed.min_m_s:
+        if tas < self._min_m_s:
             self.row.set(t_us, reason=REASON_LOW_AIRSPEED)
             return True
         if not self._gain_m:
@@ -94,12 +99,14 @@ class AoaAid(AidSource):
         if R_nb is None or math.isnan(imu.nrm_f):
             self.row.set(t_us, reason=REASON_NO_ATTITUDE)
             return True
-        v_air = max(tas / (1.0 + float(self.core.x[TS])), c.airspeed.min_m_s)
-        z_alpha = LiftAngleOfAttack.measured(c, imu.nrm_f, v_air)
+        v_air = max(tas / (1.0 + float(self.core.x[TS])), self._min_m_s)
+        gain, zero_lift = self._lift
+        z_alpha = -gain * imu.nrm_f / (v_air * v_air) - zero_lift
         if abs(z_alpha) > self._max_rad:                  # stall, or a pull beyond the linear lift curve
             self.row.set(t_us, reason=REASON_AOA_RANGE)
             return True
-        var = LiftAngleOfAttack.variance(c, self.ctx.process.turb_var, v_air)
+        var0, k_turb = self._var_terms
+        var = var0 + k_turb * self.ctx.process.turb_var / v_air**2
         model = LiftAngleOfAttack(R_nb, self._gain_m / (v_air * v_air), var)
-        self.fuse(t_us, (z_alpha,), model, c.gates.aoa_nis)
+        self.fuse(t_us, (z_alpha,), model, self._gate)
         return True

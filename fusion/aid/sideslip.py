@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Any, ClassVar
 
 from fusion.aid.air import MIN_AIR_SPEED_M_S, TS, air_angle_row, body_air_velocity
 from fusion.aid.airspeed import REASON_LOW_AIRSPEED
@@ -68,25 +68,34 @@ class SideslipAid(AidSource):
     name = "sideslip"
     listens: ClassVar[tuple[str, ...]] = ("airspeed",)
 
-    def control(self, t_us: int, tas: float) -> bool:
+    def __init__(self, *args: Any) -> None:
+        super().__init__(*args)
         c = self.cfg
-        if tas < c.airspeed.min_m_s:
+        # the configuration's derived numbers, once (this runs with every airspeed sample)
+        self._min_m_s, self._gain_m, self._gate = c.airspeed.min_m_s, c.airframe.sideslip_accel_gain_m, \
+            c.gates.sideslip_nis
+        self._var_terms = (c.sideslip.sigma_rad**2, c.sideslip.turb_noise_factor**2)   # SyntheticSideslip.variance
+
+    def control(self, t_us: int, tas: float) -> bool:
+        if tas < self._min_m_s:
             self.row.set(t_us, reason=REASON_LOW_AIRSPEED)
             return True
-        if not c.sideslip.enabled:
+        if not self.cfg.sideslip.enabled:
             return True
-        R_nb = self.ctx.imu.R_nb()
+        imu = self.ctx.imu
+        R_nb = imu.R_nb()
         if R_nb is None:
             self.row.set(t_us, reason=REASON_NO_ATTITUDE)
             return True
         # the side-force sideslip (measured value) from the lateral specific force and the corrected airspeed;
         # 0 with the model off (zero sideslip)
         k_beta, z_beta = 0.0, 0.0
-        v_air = max(tas / (1.0 + float(self.core.x[TS])), c.airspeed.min_m_s)
-        lat_f = self.ctx.imu.lat_f
-        if c.airframe.sideslip_accel_gain_m and not math.isnan(lat_f):
-            k_beta = c.airframe.sideslip_accel_gain_m / (v_air * v_air)
+        v_air = max(tas / (1.0 + float(self.core.x[TS])), self._min_m_s)
+        lat_f = imu.lat_f
+        if self._gain_m and not math.isnan(lat_f):
+            k_beta = self._gain_m / (v_air * v_air)
             z_beta = k_beta * lat_f
-        var = SyntheticSideslip.variance(c, self.ctx.process.turb_var, v_air)
-        self.fuse(t_us, (z_beta,), SyntheticSideslip(R_nb, k_beta, var), c.gates.sideslip_nis)
+        var0, k_turb = self._var_terms
+        var = var0 + k_turb * self.ctx.process.turb_var / v_air**2
+        self.fuse(t_us, (z_beta,), SyntheticSideslip(R_nb, k_beta, var), self._gate)
         return True
