@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 import pytest
 
+from common.logio import read_log
 from nav.camera_sources import (
     CameraSetupError,
     CaptureSource,
@@ -285,3 +286,24 @@ def test_status_line_reads_as_one_line():
     line = status_line(s, before, 5.0)
     assert line == ("link up | GNSS OK | camera open 30.0 fps | frames 450 (rejected 2: frozen 2, stale 1) | "
                     "EKF steps 440 | estimates sent 900, withheld 12 (estimate invalid 12)")
+
+
+def test_set_camera_file_is_applied(tmp_path):
+    """``--set camera.file=...`` takes effect: a 640x480 video is refused against the default 800x600 camera file
+    and accepted (the companion runs and stops cleanly) with a 640x480 camera file."""
+    vga = write_video(tmp_path / "vga.avi", (640, 480), 30, 30.0)
+    cam = tmp_path / "vga_camera.toml"
+    cam.write_text(CAMERA_FILE.read_text().replace("width_px = 800", "width_px = 640")
+                   .replace("height_px = 600", "height_px = 480").replace("cx_px = 400.0", "cx_px = 320.0")
+                   .replace("cy_px = 300.0", "cy_px = 240.0"))
+    p = gsoe("companion", "--connect", "udpin://127.0.0.1:14997", "--camera", str(vga), "--duration-s", "2",
+             "--set", f'camera.file="{cam}"', "--log-dir", str(tmp_path / "log"), cwd=tmp_path)
+    try:
+        out, err = p.communicate(timeout=TIMEOUT_S)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 0, err
+    assert "calibrated for" not in err and "frame rejected" not in err, err
+    events = read_log(tmp_path / "log" / "events.csv")
+    assert "opened" in list(events["detail"]), events
