@@ -387,7 +387,7 @@ class _Figures:
         frm, frm_s = np.asarray(E["wind_from_rad"], dtype=float), np.asarray(E["wind_from_sigma_rad"], dtype=float)
         # directions around their median, unwrapped there (a wind from the north stays one band, not 0 and 360)
         centre = float(np.degrees(np.arctan2(np.median(np.sin(frm[valid])), np.median(np.cos(frm[valid]))))
-                       ) if valid.any() else 0.0
+                       ) % 360.0 if valid.any() else 0.0
 
         def around(deg: NDArray[np.float64]) -> NDArray[np.float64]:
             return centre + (np.asarray(deg, dtype=float) - centre + 180.0) % 360.0 - 180.0
@@ -395,9 +395,9 @@ class _Figures:
         tv, s, ss, f, fs = _thin(t[valid], spd[valid], spd_s[valid], around(np.degrees(frm[valid])),
                                  np.degrees(frm_s[valid]))
         axes[0].fill_between(tv, s - ss, s + ss, color="b", alpha=0.2, lw=0)
-        axes[0].plot(tv, s, "b-", lw=0.8, label="EKF +-1 sigma")
+        axes[0].plot(tv, s, "b-", lw=0.8, label="EKF +-1 sigma", zorder=3)  # above the references
         axes[1].fill_between(tv, f - fs, f + fs, color="b", alpha=0.2, lw=0)
-        axes[1].plot(tv, f, "b.", ms=1)
+        axes[1].plot(tv, f, "b.", ms=1, zorder=3)
         ref = ""
         if L.truth:
             ref = "truth"
@@ -420,6 +420,14 @@ class _Figures:
         axes[0].set_ylabel("wind speed [m/s]")
         axes[1].set_ylabel("wind from [deg]")
         axes[1].set_xlabel("time [s]")
+        # the scale of the flight's wind and its usual sigma, not of the filter's first seconds
+        for ax, (vals, sig) in zip(axes, ((s, ss), (f, fs)), strict=True):
+            lines = [np.asarray(ln.get_ydata(), dtype=float) for ln in ax.get_lines()]
+            data = np.concatenate([vals, *lines]) if lines else vals
+            data = data[np.isfinite(data)]
+            if data.size:
+                pad = 2.0 * float(np.nanmedian(sig)) + 0.05 * float(np.ptp(data)) + 0.1
+                ax.set_ylim(float(np.percentile(data, 0.5)) - pad, float(np.percentile(data, 99.5)) + pad)
         self.shade(*axes)
         axes[0].legend(fontsize=8)
         self.save(fig, "wind.png", "Wind speed and the direction it comes from, EKF with 1-sigma bands"
