@@ -27,6 +27,7 @@ samples) do not show once the intensity is rounded to whole DN.
 from __future__ import annotations
 
 import math
+import sys
 from typing import Any
 
 import cv2
@@ -35,6 +36,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.special import ndtri
 
 from gsoe.camera import CameraModel
+from sim import diskcache
 from sim.render_kernels import blend_add, ground_maps, to_dn
 from sim.textures import GroundWorld
 
@@ -118,6 +120,18 @@ def _pixel_tables(camera: CameraModel) -> tuple[NDArray[np.float32], NDArray[np.
     key = (camera.model, w, h, camera.K.tobytes(), camera.D.tobytes())
     if key in _PIXEL_TABLES:
         return _PIXEL_TABLES[key]
+    # the same in every run of this lens: kept on disk (sim.diskcache)
+    rays, log2_angle = diskcache.cached_arrays("pixel_tables", diskcache.fingerprint(
+        modules=[sys.modules[__name__]], model=camera.model, size=[w, h], K=camera.K.tolist(), D=camera.D.tolist()),
+        lambda: _build_pixel_tables(camera))
+    while len(_PIXEL_TABLES) >= PIXEL_TABLE_CACHE_SIZE:
+        del _PIXEL_TABLES[next(iter(_PIXEL_TABLES))]
+    _PIXEL_TABLES[key] = (rays, log2_angle)
+    return rays, log2_angle
+
+
+def _build_pixel_tables(camera: CameraModel) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    w, h = camera.size_px
     rows, cols = np.mgrid[0:h, 0:w].astype(np.float64)
     px = np.column_stack([cols.ravel(), rows.ravel()])
     rays = np.ascontiguousarray(camera.unproject(px).reshape(h, w, 3), dtype=np.float32)
@@ -132,9 +146,6 @@ def _pixel_tables(camera: CameraModel) -> tuple[NDArray[np.float32], NDArray[np.
     log2_angle = np.log2(pixel_angle).astype(np.float32)
     for arr in (rays, log2_angle):
         arr.setflags(write=False)
-    while len(_PIXEL_TABLES) >= PIXEL_TABLE_CACHE_SIZE:
-        del _PIXEL_TABLES[next(iter(_PIXEL_TABLES))]
-    _PIXEL_TABLES[key] = (rays, log2_angle)
     return rays, log2_angle
 
 

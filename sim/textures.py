@@ -30,6 +30,7 @@ import functools
 import logging
 import math
 import re
+import sys
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -39,6 +40,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+
+from sim import diskcache
 
 logger = logging.getLogger(__name__)
 
@@ -541,9 +544,14 @@ class GroundWorld:
 def _world_by_name(name: str, seed: int, color: bool) -> GroundWorld:
     t0 = time.perf_counter()
     if name in REAL_TEXTURES or name == "mosaic":
-        bgr, m_per_px = _mosaic_tile() if name == "mosaic" else load_real_tile(name)
-        world = GroundWorld.from_array(intensity_from_bgr(bgr), m_per_px, name=name,
-                                       color_bgr=bgr if color else None)
+        def build() -> GroundWorld:
+            bgr, m_per_px = _mosaic_tile() if name == "mosaic" else load_real_tile(name)
+            return GroundWorld.from_array(intensity_from_bgr(bgr), m_per_px, name=name,
+                                          color_bgr=bgr if color else None)
+
+        # the intensity world of a real tile is the same in every run: kept on disk (sim.diskcache)
+        world = build() if color else diskcache.cached_world(
+            name, build, [TEXTURE_DIR / f for f, _, _ in REAL_TEXTURES.values()], sys.modules[__name__])
     else:
         gray, m_per_px = procedural_texture(name, np.random.default_rng(seed))
         world = GroundWorld.from_array(gray, m_per_px, name=name,
