@@ -20,6 +20,8 @@ def wrap_pi(angle_rad: ArrayLike) -> NDArray[np.float64] | float:
 
 def wrap_2pi(angle_rad: ArrayLike) -> NDArray[np.float64] | float:
     """Wrap to [0, 2 pi)."""
+    if isinstance(angle_rad, float | int):  # fast path for scalars in hot loops (the same floating-point modulo)
+        return float(angle_rad) % TWO_PI
     a = np.asarray(angle_rad, dtype=float) % TWO_PI
     return float(a) if a.ndim == 0 else a
 

@@ -206,6 +206,19 @@ class Decimator:
         self._last[key] = int(t)
         self._write(stream, record)
 
+    def wants(self, stream: str, t_us: Any, *key: Any) -> bool:
+        """Whether a record of ``stream`` stamped ``t_us`` (with ``key``: the values of its ``keys[stream]``
+        columns) would be written now.  One that would not is counted as dropped here, so a writer may skip
+        building it (a record per IMU sample, of which one in 24 is written)."""
+        period = self._period_us.get(stream)
+        if period is None or not isinstance(t_us, int | np.integer):
+            return True
+        last = self._last.get((stream, *key))
+        if last is not None and last <= t_us < last + period:
+            self.dropped[stream] = self.dropped.get(stream, 0) + 1
+            return False
+        return True
+
 
 def read_log(path: str | Path) -> dict[str, Any]:
     """Read one stream into a dict of numpy arrays (column name -> array), dropping a torn last line."""

@@ -137,6 +137,8 @@ class NavPipeline:
         #: the baro altitude of the ground level at the NED origin (m)
         self.ground_alt_m = 0.0
         self._sink = sink
+        # a sink may say which records it would drop (common.logio.Decimator.wants): those are not built
+        self._wants: Callable[..., bool] | None = getattr(sink, "wants", None)
         #: IMU and attitude samples that are in range but implausible for the airframe never reach GSOE or the EKF
         self.plausibility = SamplePlausibility(cfg, sink)
         self.timers = timers if timers is not None else {"gsoe": 0.0, "ekf": 0.0}
@@ -204,7 +206,7 @@ class NavPipeline:
 
     def on_baro(self, s: BaroSample) -> None:
         self._flush_to(s.t_us)
-        if self._sink is not None:
+        if self._sink is not None and (self._wants is None or self._wants("baro", s.t_us)):
             self._sink("baro", rec.baro_record(s, self.ground_alt_m))
         if not math.isfinite(s.alt_m):
             return
@@ -316,7 +318,7 @@ class NavPipeline:
 
     # ------------------------------------------------------------------------------------------------ inside
     def _write(self, stream: str, build: Callable[[Any], dict[str, Any]], s: Any) -> None:
-        if self._sink is not None:
+        if self._sink is not None and (self._wants is None or self._wants(stream, s.t_us)):
             self._sink(stream, build(s))
 
     def _predict_held(self) -> None:
@@ -451,11 +453,14 @@ class NavPipeline:
         self._last_estimate = e
         self._last_ekf_record_us = t_us
         if self._sink is not None:
-            self._sink("ekf", e.as_record())
+            wants = self._wants
+            if wants is None or wants("ekf", e.t_us):
+                self._sink("ekf", e.as_record())
             for name, st in self.ekf.status().items():
                 if st.t_us != self._aid_written.get(name):
                     self._aid_written[name] = st.t_us
-                    self._sink("aid_status", st.as_record())
+                    if wants is None or wants("aid_status", st.t_us, st.source, st.rejected):
+                        self._sink("aid_status", st.as_record())
         return e
 
 

@@ -329,7 +329,7 @@ def _record_truth(series: _Series, tr: TruthState, log_write: Any) -> None:
                    ("beta", tr.beta_rad), ("wn", tr.wind_ned_m_s[0]), ("we", tr.wind_ned_m_s[1]),
                    ("wsn", tr.wind_steady_ned_m_s[0]), ("wse", tr.wind_steady_ned_m_s[1]), ("h", tr.height_agl_m)):
         T[key].append(float(v))
-    if log_write is not None:
+    if log_write is not None and (not hasattr(log_write, "wants") or log_write.wants("truth", tr.t_us)):
         log_write("truth", _truth_record(tr))
 
 
