@@ -509,8 +509,8 @@ class Companion:
             self.gcs = CommandEndpoint(gcs_url, signing_key, lc.system_id, lc.component_id)
 
     def _log(self, stream: str, record: dict[str, Any]) -> None:
-        """Write a record, numpy scalars as Python numbers (their repr is not a number in numpy 2)."""
-        self.runlog.write(stream, {k: v.item() if isinstance(v, np.generic) else v for k, v in record.items()})
+        """Write a record (the log formats numpy scalars as numbers: :class:`common.logio.CsvStream`)."""
+        self.runlog.write(stream, record)
 
     def _event(self, kind: str, detail: str, level: int = logging.INFO, t_us: int | None = None) -> None:
         """A state change: logged and written to ``events.csv``."""

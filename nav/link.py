@@ -470,16 +470,21 @@ class ClockSync:
 
     def __init__(self, window_s: float) -> None:
         self._window_us = window_s * 1e6
-        self._samples: list[tuple[int, int]] = []  # (receive_us, receive - send)
+        # (receive_us, receive - send) of the samples that can still be the window's minimum: receive times and
+        # offsets both increasing, so the minimum is the first (a sliding-window minimum, O(1) per sample)
+        self._samples: deque[tuple[int, int]] = deque()
         self.offset_us: int | None = None
 
     def observe(self, vehicle_us: int, receive_us: int) -> int:
         d = receive_us - vehicle_us
-        self._samples.append((receive_us, d))
+        s = self._samples
+        while s and s[-1][1] >= d:     # never the minimum again: this sample is no larger and leaves the window later
+            s.pop()
+        s.append((receive_us, d))
         cutoff = receive_us - self._window_us
-        while self._samples and self._samples[0][0] < cutoff:
-            self._samples.pop(0)
-        self.offset_us = min(s[1] for s in self._samples)
+        while s[0][0] < cutoff:
+            s.popleft()
+        self.offset_us = s[0][1]
         return vehicle_us + self.offset_us
 
     def reset(self) -> None:
