@@ -100,7 +100,7 @@ class CameraModel:
             img, _ = cv2.fisheye.projectPoints(obj, _ZERO3, _ZERO3, self.K, self.D)
         else:
             img, _ = cv2.projectPoints(obj, _ZERO3, _ZERO3, self.K, self.D)
-        px = cast(NDArray[np.float64], img.reshape(-1, 2))
+        px = cast("NDArray[np.float64]", img.reshape(-1, 2))    # (a string: no runtime subscript per call)
         (x0, y0), (x1, y1) = np.minimum.reduce(px).tolist(), np.maximum.reduce(px).tolist()
         w, h = self._frame_limits
         if x0 < -0.5 or y0 < -0.5 or x1 > w or y1 > h:
