@@ -106,22 +106,6 @@ def _store(entry: Path, arrays: Arrays, meta: dict[str, Any]) -> None:
             shutil.rmtree(tmp, ignore_errors=True)
 
 
-def cached_world(name: str, build: Callable[[], Any], files: Iterable[str | Path], module: ModuleType) -> Any:
-    """A :class:`sim.textures.GroundWorld` without colour, through the cache: ``build()`` makes it; ``files`` (the
-    tiles it is made from) and ``module`` (the code that makes it) are the key."""
-    from sim.textures import GroundWorld
-
-    def arrays() -> Built:
-        w = build()
-        return ({"atlas": w.atlas, "level_origin_px": w.level_origin_px},
-                {"m_per_px": w.m_per_px, "tile_px": list(w.tile_px), "origin_px": list(w.origin_px)})
-
-    a, m = cached("world", fingerprint(files=files, modules=[module], world=name), arrays)
-    return GroundWorld(name=name, m_per_px=float(m["m_per_px"]), tile_px=(int(m["tile_px"][0]), int(m["tile_px"][1])),
-                       origin_px=(float(m["origin_px"][0]), float(m["origin_px"][1])), atlas=a["atlas"],
-                       level_origin_px=a["level_origin_px"])
-
-
 def cached_arrays(kind: str, key: Mapping[str, Any], build: Callable[[], tuple[NDArray[Any], ...]]
                   ) -> tuple[NDArray[Any], ...]:
     """A tuple of arrays through the cache (``key`` from :func:`fingerprint`)."""

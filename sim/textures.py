@@ -32,7 +32,7 @@ import math
 import re
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -540,6 +540,21 @@ class GroundWorld:
         return np.asarray(out.reshape(-1)[:count].reshape(shape), dtype=np.float32)
 
 
+def _cached_world(name: str, build: Callable[[], GroundWorld], files: Iterable[Path]) -> GroundWorld:
+    """A colourless :class:`GroundWorld` through :mod:`sim.diskcache`: ``build()`` makes it; ``files`` (the tiles it
+    is made from) and this module's source are the key."""
+    def arrays() -> diskcache.Built:
+        w = build()
+        return ({"atlas": w.atlas, "level_origin_px": w.level_origin_px},
+                {"m_per_px": w.m_per_px, "tile_px": list(w.tile_px), "origin_px": list(w.origin_px)})
+
+    a, m = diskcache.cached("world", diskcache.fingerprint(files=files, modules=[sys.modules[__name__]], world=name),
+                            arrays)
+    return GroundWorld(name=name, m_per_px=float(m["m_per_px"]), tile_px=(int(m["tile_px"][0]), int(m["tile_px"][1])),
+                       origin_px=(float(m["origin_px"][0]), float(m["origin_px"][1])), atlas=a["atlas"],
+                       level_origin_px=a["level_origin_px"])
+
+
 @functools.lru_cache(maxsize=_WORLD_CACHE_SIZE)
 def _world_by_name(name: str, seed: int, color: bool) -> GroundWorld:
     t0 = time.perf_counter()
@@ -550,8 +565,8 @@ def _world_by_name(name: str, seed: int, color: bool) -> GroundWorld:
                                           color_bgr=bgr if color else None)
 
         # the intensity world of a real tile is the same in every run: kept on disk (sim.diskcache)
-        world = build() if color else diskcache.cached_world(
-            name, build, [TEXTURE_DIR / f for f, _, _ in REAL_TEXTURES.values()], sys.modules[__name__])
+        world = build() if color else _cached_world(
+            name, build, [TEXTURE_DIR / f for f, _, _ in REAL_TEXTURES.values()])
     else:
         gray, m_per_px = procedural_texture(name, np.random.default_rng(seed))
         world = GroundWorld.from_array(gray, m_per_px, name=name,
