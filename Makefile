@@ -3,7 +3,7 @@ PY ?= python3
 VENV := .venv
 STAMP := $(VENV)/.installed
 
-.PHONY: sim test lint bench clean
+.PHONY: sim test lint bench clean missionplanner-plugin
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -25,6 +25,10 @@ lint: $(STAMP)
 
 bench: $(STAMP)
 	$(VENV)/bin/gsoe bench
+
+# the Mission Planner plugin's single file, made from gcs/missionplanner/src/ (Python's standard library only)
+missionplanner-plugin:
+	$(PY) gcs/missionplanner/build.py release
 
 clean:
 	rm -rf $(VENV) out

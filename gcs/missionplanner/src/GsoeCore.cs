@@ -60,6 +60,12 @@ namespace GsoeNav
         public string LastStatusText = "";
         public Dictionary<string, int> Counts = new Dictionary<string, int>();
 
+        /// <summary>A copy of every field (Counts: the same dictionary).</summary>
+        public GsoeDisplayState Copy()
+        {
+            return (GsoeDisplayState)MemberwiseClone();
+        }
+
         /// <summary>Three display lines: wind, drift/ATA, validity/quality/GNSS/age.</summary>
         public string WindLine
         {
@@ -193,10 +199,8 @@ namespace GsoeNav
         byte _sourceComponent;
         double _stale_s;
 
-        double _windSpeed = double.NaN, _windFrom = double.NaN, _windSpeedSigma = double.NaN, _windFromSigma = double.NaN;
-        double _windN = double.NaN, _windE = double.NaN;
-        double _drift = double.NaN, _ata = double.NaN, _quality = double.NaN;
-        string _gnss = "", _gnssReason = "", _invalidReason = "", _lastStatusText = "";
+        // what has been received (Snapshot adds the ages, the validity and the counts to a copy)
+        readonly GsoeDisplayState _s = new GsoeDisplayState();
         bool? _valid;
         bool _stale;
         double _tEstimate = double.NaN, _tStatus = double.NaN;
@@ -230,49 +234,41 @@ namespace GsoeNav
             set { lock (_lock) _sourceComponent = value; }
         }
 
+        // How each message the decoder reads changes the state (called under the lock, from the companion only).
+        delegate void Reader(GsoeDecoder decoder, MAVLink.MAVLinkMessage msg, double nowS, List<string> warn);
+
+        static readonly Dictionary<MAVLink.MAVLINK_MSG_ID, Reader> Readers =
+            new Dictionary<MAVLink.MAVLINK_MSG_ID, Reader>
+        {
+            { MAVLink.MAVLINK_MSG_ID.WIND_COV,
+              (d, m, t, w) => d.OnWindCov(m.ToStructure<MAVLink.mavlink_wind_cov_t>(), t) },
+            { MAVLink.MAVLINK_MSG_ID.WIND,
+              (d, m, t, w) => d.OnWind(m.ToStructure<MAVLink.mavlink_wind_t>(), t) },
+            { MAVLink.MAVLINK_MSG_ID.NAMED_VALUE_FLOAT,
+              (d, m, t, w) => d.OnNamedValueFloat(m.ToStructure<MAVLink.mavlink_named_value_float_t>(), t, w) },
+            { MAVLink.MAVLINK_MSG_ID.DEBUG_VECT,
+              (d, m, t, w) => d.OnDebugVect(m.ToStructure<MAVLink.mavlink_debug_vect_t>(), t) },
+            { MAVLink.MAVLINK_MSG_ID.STATUSTEXT,
+              (d, m, t, w) => d.OnStatusText(m.ToStructure<MAVLink.mavlink_statustext_t>(), w) },
+        };
+
         /// <summary>The message ids the decoder reads (what an adapter subscribes to).</summary>
         public static readonly MAVLink.MAVLINK_MSG_ID[] MessageIds =
-        {
-            MAVLink.MAVLINK_MSG_ID.WIND_COV, MAVLink.MAVLINK_MSG_ID.WIND, MAVLink.MAVLINK_MSG_ID.NAMED_VALUE_FLOAT,
-            MAVLink.MAVLINK_MSG_ID.DEBUG_VECT, MAVLink.MAVLINK_MSG_ID.STATUSTEXT,
-        };
+            new List<MAVLink.MAVLINK_MSG_ID>(Readers.Keys).ToArray();
 
         /// <summary>Takes one received message; returns the warnings it causes (empty for most).</summary>
         public List<string> Handle(MAVLink.MAVLinkMessage msg, double nowS)
         {
-            var none = new List<string>();
-            if (msg == null)
-                return none;
-            switch ((MAVLink.MAVLINK_MSG_ID)msg.msgid)
+            var warn = new List<string>();
+            Reader read;
+            if (msg == null || !Readers.TryGetValue((MAVLink.MAVLINK_MSG_ID)msg.msgid, out read))
+                return warn;
+            lock (_lock)
             {
-                case MAVLink.MAVLINK_MSG_ID.WIND:
-                {
-                    var m = msg.ToStructure<MAVLink.mavlink_wind_t>();
-                    return OnWind(msg.sysid, msg.compid, m.direction, m.speed, nowS);
-                }
-                case MAVLink.MAVLINK_MSG_ID.WIND_COV:
-                {
-                    var m = msg.ToStructure<MAVLink.mavlink_wind_cov_t>();
-                    return OnWindCov(msg.sysid, msg.compid, m.wind_x, m.wind_y, m.var_horiz, m.horiz_accuracy, nowS);
-                }
-                case MAVLink.MAVLINK_MSG_ID.NAMED_VALUE_FLOAT:
-                {
-                    var m = msg.ToStructure<MAVLink.mavlink_named_value_float_t>();
-                    return OnNamedValueFloat(msg.sysid, msg.compid, m.name, m.value, nowS);
-                }
-                case MAVLink.MAVLINK_MSG_ID.DEBUG_VECT:
-                {
-                    var m = msg.ToStructure<MAVLink.mavlink_debug_vect_t>();
-                    return OnDebugVect(msg.sysid, msg.compid, m.name, m.x, m.y, m.z, nowS);
-                }
-                case MAVLink.MAVLINK_MSG_ID.STATUSTEXT:
-                {
-                    var m = msg.ToStructure<MAVLink.mavlink_statustext_t>();
-                    return OnStatusText(msg.sysid, msg.compid, m.severity, m.text, nowS);
-                }
-                default:
-                    return none;
+                if (FromCompanion(msg.sysid, msg.compid))
+                    read(this, msg, nowS, warn);
             }
+            return warn;
         }
 
         bool FromCompanion(byte sysid, byte compid)
@@ -301,129 +297,95 @@ namespace GsoeNav
             return Encoding.UTF8.GetString(chars, 0, n < 0 ? chars.Length : n);
         }
 
-        public List<string> OnWind(byte sysid, byte compid, float direction_deg, float speed_m_s, double nowS)
+        void OnWind(MAVLink.mavlink_wind_t m, double nowS)
         {
-            var warn = new List<string>();
-            lock (_lock)
-            {
-                if (!FromCompanion(sysid, compid))
-                    return warn;
-                Count("WIND");
-                if (Finite(direction_deg) && Finite(speed_m_s))
-                {
-                    _windSpeed = speed_m_s;
-                    _windFrom = GsoeFormat.Wrap360(direction_deg);
-                    _tEstimate = nowS;
-                }
-            }
-            return warn;
+            Count("WIND");
+            if (!(Finite(m.direction) && Finite(m.speed)))
+                return;
+            _s.WindSpeed_m_s = m.speed;
+            _s.WindFrom_deg = GsoeFormat.Wrap360(m.direction);
+            _tEstimate = nowS;
         }
 
-        public List<string> OnWindCov(byte sysid, byte compid, float wind_n_m_s, float wind_e_m_s, float varHoriz_m_s,
-                                      float horizAccuracy_m_s, double nowS)
+        void OnWindCov(MAVLink.mavlink_wind_cov_t m, double nowS)
         {
-            var warn = new List<string>();
-            lock (_lock)
+            Count("WIND_COV");
+            if (!(Finite(m.wind_x) && Finite(m.wind_y) && Finite(m.var_horiz) && Finite(m.horiz_accuracy)))
+                return;
+            _s.WindNorth_m_s = m.wind_x;
+            _s.WindEast_m_s = m.wind_y;
+            double speed = Math.Sqrt((double)m.wind_x * m.wind_x + (double)m.wind_y * m.wind_y);
+            _s.WindSpeed_m_s = speed;
+            // blowing from: the opposite of the air's velocity
+            _s.WindFrom_deg = GsoeFormat.Wrap360(Math.Atan2(-(double)m.wind_y, -(double)m.wind_x) * 180.0 / Math.PI);
+            _s.WindSpeedSigma_m_s = m.horiz_accuracy;
+            // the cross-wind sigma over the speed; near calm the direction is undefined (180 deg)
+            _s.WindFromSigma_deg = speed > 0.0 ? Math.Min(Math.PI, m.var_horiz / speed) * 180.0 / Math.PI : 180.0;
+            _tEstimate = nowS;
+        }
+
+        void OnNamedValueFloat(MAVLink.mavlink_named_value_float_t m, double nowS, List<string> warn)
+        {
+            string key = Text(m.name);
+            if (!key.StartsWith(StatusTextPrefix + "_", StringComparison.Ordinal))
+                return;
+            Count("NAMED_VALUE_FLOAT");
+            float value = m.value;
+            if (!Finite(value))
+                return;
+            if (key == "GSOE_DRIFT")
             {
-                if (!FromCompanion(sysid, compid))
-                    return warn;
-                Count("WIND_COV");
-                if (!(Finite(wind_n_m_s) && Finite(wind_e_m_s) && Finite(varHoriz_m_s) && Finite(horizAccuracy_m_s)))
-                    return warn;
-                _windN = wind_n_m_s;
-                _windE = wind_e_m_s;
-                double speed = Math.Sqrt((double)wind_n_m_s * wind_n_m_s + (double)wind_e_m_s * wind_e_m_s);
-                _windSpeed = speed;
-                // blowing from: the opposite of the air's velocity
-                _windFrom = GsoeFormat.Wrap360(Math.Atan2(-(double)wind_e_m_s, -(double)wind_n_m_s) * 180.0 / Math.PI);
-                _windSpeedSigma = horizAccuracy_m_s;
-                // the cross-wind sigma over the speed; near calm the direction is undefined (180 deg)
-                _windFromSigma = speed > 0.0 ? Math.Min(Math.PI, varHoriz_m_s / speed) * 180.0 / Math.PI : 180.0;
+                _s.Drift_deg = value;
                 _tEstimate = nowS;
             }
-            return warn;
-        }
-
-        public List<string> OnNamedValueFloat(byte sysid, byte compid, byte[] name, float value, double nowS)
-        {
-            var warn = new List<string>();
-            lock (_lock)
+            else if (key == "GSOE_ATA")
             {
-                if (!FromCompanion(sysid, compid))
-                    return warn;
-                string key = Text(name);
-                if (!key.StartsWith(StatusTextPrefix + "_", StringComparison.Ordinal))
-                    return warn;
-                Count("NAMED_VALUE_FLOAT");
-                if (!Finite(value))
-                    return warn;
-                if (key == "GSOE_DRIFT")
-                {
-                    _drift = value;
-                    _tEstimate = nowS;
-                }
-                else if (key == "GSOE_ATA")
-                {
-                    _ata = GsoeFormat.Wrap360(value);
-                    _tEstimate = nowS;
-                }
-                else if (key == "GSOE_Q")
-                    _quality = value;
-                else if (key == "GSOE_GNSS")
-                    SetGnss(GnssName(value), "", warn);
-                else if (key == "GSOE_VALID")
-                {
-                    _tStatus = nowS;
-                    _stale = false;
-                    SetValid(value >= ValidThreshold, null, warn);
-                }
-            }
-            return warn;
-        }
-
-        public List<string> OnDebugVect(byte sysid, byte compid, byte[] name, float x, float y, float z, double nowS)
-        {
-            var warn = new List<string>();
-            lock (_lock)
-            {
-                if (!FromCompanion(sysid, compid) || Text(name) != StatusTextPrefix)
-                    return warn;
-                Count("DEBUG_VECT");
-                if (!(Finite(x) && Finite(y) && Finite(z)))
-                    return warn;
-                _drift = x;
-                _ata = GsoeFormat.Wrap360(y);
-                _quality = z;
+                _s.Ata_deg = GsoeFormat.Wrap360(value);
                 _tEstimate = nowS;
             }
-            return warn;
+            else if (key == "GSOE_Q")
+                _s.Quality = value;
+            else if (key == "GSOE_GNSS")
+                SetGnss(GnssName(value), "", warn);
+            else if (key == "GSOE_VALID")
+            {
+                _tStatus = nowS;
+                _stale = false;
+                SetValid(value >= ValidThreshold, null, warn);
+            }
         }
 
-        public List<string> OnStatusText(byte sysid, byte compid, byte severity, byte[] text, double nowS)
+        void OnDebugVect(MAVLink.mavlink_debug_vect_t m, double nowS)
         {
-            var warn = new List<string>();
-            lock (_lock)
+            if (Text(m.name) != StatusTextPrefix)
+                return;
+            Count("DEBUG_VECT");
+            if (!(Finite(m.x) && Finite(m.y) && Finite(m.z)))
+                return;
+            _s.Drift_deg = m.x;
+            _s.Ata_deg = GsoeFormat.Wrap360(m.y);
+            _s.Quality = m.z;
+            _tEstimate = nowS;
+        }
+
+        void OnStatusText(MAVLink.mavlink_statustext_t m, List<string> warn)
+        {
+            string t = Text(m.text);
+            if (!t.StartsWith(StatusTextPrefix, StringComparison.Ordinal))
+                return;
+            Count("STATUSTEXT");
+            _s.LastStatusText = t;
+            if (t.StartsWith(InvalidPrefix, StringComparison.Ordinal))
+                SetValid(false, t.Substring(InvalidPrefix.Length).Trim(), warn);
+            else if (t.StartsWith(ValidText, StringComparison.Ordinal))
+                SetValid(true, null, warn);
+            else if (t.StartsWith(GnssPrefix, StringComparison.Ordinal))
             {
-                if (!FromCompanion(sysid, compid))
-                    return warn;
-                string t = Text(text);
-                if (!t.StartsWith(StatusTextPrefix, StringComparison.Ordinal))
-                    return warn;
-                Count("STATUSTEXT");
-                _lastStatusText = t;
-                if (t.StartsWith(InvalidPrefix, StringComparison.Ordinal))
-                    SetValid(false, t.Substring(InvalidPrefix.Length).Trim(), warn);
-                else if (t.StartsWith(ValidText, StringComparison.Ordinal))
-                    SetValid(true, null, warn);
-                else if (t.StartsWith(GnssPrefix, StringComparison.Ordinal))
-                {
-                    int colon = t.IndexOf(':');
-                    string state = (colon < 0 ? t.Substring(StatusTextPrefix.Length) : t.Substring(StatusTextPrefix.Length, colon - StatusTextPrefix.Length)).Trim();
-                    string why = colon < 0 ? "" : t.Substring(colon + 1).Trim();
-                    SetGnss(state, why, warn);
-                }
+                int colon = t.IndexOf(':');
+                string state = (colon < 0 ? t.Substring(StatusTextPrefix.Length) : t.Substring(StatusTextPrefix.Length, colon - StatusTextPrefix.Length)).Trim();
+                string why = colon < 0 ? "" : t.Substring(colon + 1).Trim();
+                SetGnss(state, why, warn);
             }
-            return warn;
         }
 
         static string GnssName(float value)
@@ -437,26 +399,27 @@ namespace GsoeNav
         // A change is announced once, whichever of the named value and the STATUSTEXT comes first.
         void SetGnss(string state, string why, List<string> warn)
         {
-            if (state == _gnss)
+            if (state == _s.GnssState)
             {
                 if (why.Length > 0)
-                    _gnssReason = why;
+                    _s.GnssReason = why;
                 return;
             }
-            if (_gnss.Length > 0)
-                warn.Add("GSOE GNSS state " + _gnss + " -> " + state + (why.Length > 0 ? ": " + why : ""));
-            _gnss = state;
-            _gnssReason = why;
+            if (_s.GnssState.Length > 0)
+                warn.Add("GSOE GNSS state " + _s.GnssState + " -> " + state + (why.Length > 0 ? ": " + why : ""));
+            _s.GnssState = state;
+            _s.GnssReason = why;
         }
 
         void SetValid(bool valid, string reason, List<string> warn)
         {
             if (valid)
-                _invalidReason = "";
+                _s.InvalidReason = "";
             else if (reason != null)
-                _invalidReason = reason;
+                _s.InvalidReason = reason;
             if (_valid.HasValue && _valid.Value && !valid)
-                warn.Add("GSOE estimate INVALID: " + (_invalidReason.Length > 0 ? _invalidReason : "reason not reported")
+                warn.Add("GSOE estimate INVALID: "
+                         + (_s.InvalidReason.Length > 0 ? _s.InvalidReason : "reason not reported")
                          + "; wind and drift no longer sent");
             else if (_valid.HasValue && !_valid.Value && valid)
                 warn.Add("GSOE estimate valid again");
@@ -481,22 +444,10 @@ namespace GsoeNav
         /// <summary>The display state at nowS (ages are measured to it).</summary>
         public GsoeDisplayState Snapshot(double nowS)
         {
-            var s = new GsoeDisplayState();
+            GsoeDisplayState s;
             lock (_lock)
             {
-                s.WindSpeed_m_s = _windSpeed;
-                s.WindFrom_deg = _windFrom;
-                s.WindSpeedSigma_m_s = _windSpeedSigma;
-                s.WindFromSigma_deg = _windFromSigma;
-                s.WindNorth_m_s = _windN;
-                s.WindEast_m_s = _windE;
-                s.Drift_deg = _drift;
-                s.Ata_deg = _ata;
-                s.Quality = _quality;
-                s.GnssState = _gnss;
-                s.GnssReason = _gnssReason;
-                s.InvalidReason = _invalidReason;
-                s.LastStatusText = _lastStatusText;
+                s = _s.Copy();
                 s.EstimateAge_s = nowS - _tEstimate;
                 s.StatusAge_s = nowS - _tStatus;
                 if (_stale)
