@@ -21,6 +21,7 @@ from nav.link import (
     wind_from_deg,
 )
 from sim.mavlink_vehicle import MavlinkVehicle, VehicleConfig
+from tests.polling import wait_for
 
 
 def free_udp_port() -> int:
@@ -83,15 +84,6 @@ def drain(link: CompanionLink, seconds: float) -> list:
         except Exception:
             pass
     return out
-
-
-def wait_for(cond, timeout_s: float = 5.0) -> bool:
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        if cond():
-            return True
-        time.sleep(0.05)
-    return False
 
 
 def test_telemetry_arrives_as_validated_samples(pair):

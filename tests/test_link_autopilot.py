@@ -31,6 +31,7 @@ from nav.link import (
     true_airspeed_m_s,
     vision_confidence,
 )
+from tests.polling import wait_for
 
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
@@ -310,19 +311,10 @@ def stock() -> Iterator[tuple[StockAutopilot, CompanionLink]]:
     ap.stop()
 
 
-def wait_for(cond: Any, timeout_s: float = 15.0) -> bool:
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        if cond():
-            return True
-        time.sleep(0.05)
-    return False
-
-
 def test_rates_are_asked_refused_rates_fall_back_and_the_grant_is_announced(stock):
     ap, link = stock
     assert wait_for(lambda: len(link.stats.rates_granted) == 6 and any(
-        t.startswith("GSOE Hz") for t in ap.statustexts))
+        t.startswith("GSOE Hz") for t in ap.statustexts), 15.0)
     g = link.stats.rates_granted
     assert g["attitude"] == ("ATTITUDE", pytest.approx(40.0)) and g["imu"] == ("HIGHRES_IMU", pytest.approx(40.0))
     assert g["baro"] == ("SCALED_PRESSURE", 10.0) and g["airspeed"] == ("VFR_HUD", 10.0)
@@ -337,7 +329,7 @@ def test_granted_streams_arrive_on_the_autopilot_clock(stock):
     samples' times span those three seconds (the estimator runs on the autopilot's time); the true airspeed is the
     equivalent one made true."""
     ap, link = stock
-    assert wait_for(lambda: link.stats.rates_granted.get("attitude", ("", 0))[1] > 0)
+    assert wait_for(lambda: link.stats.rates_granted.get("attitude", ("", 0))[1] > 0, 15.0)
     time.sleep(1.0)
     while not link.samples.empty():
         link.samples.get_nowait()

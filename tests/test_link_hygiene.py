@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import hashlib
 import logging
-import time
 from typing import Any
 
 import pytest
@@ -15,6 +14,7 @@ from common.samples import GnssSample, ImuSample
 from nav.hygiene import AutopilotSenders, addressed_to, pixel_in_image
 from nav.link import LinkConfig, TelemetryGuard
 from nav.signing import CommandEndpoint
+from tests.polling import gather
 from tests.test_link import free_udp_port
 
 ARDUPLANE_HB = {"type": 1, "autopilot": 3}           # MAV_TYPE_FIXED_WING, MAV_AUTOPILOT_ARDUPILOTMEGA
@@ -110,15 +110,6 @@ def test_addressed_to_and_pixels_in_the_image():
         assert not pixel_in_image(bad, (800, 600)), bad
 
 
-def _collect(ep: CommandEndpoint, seconds: float = 0.5) -> list:
-    out = []
-    end = time.monotonic() + seconds
-    while time.monotonic() < end:
-        out += ep.poll()
-        time.sleep(0.01)
-    return out
-
-
 @pytest.mark.parametrize("signed", [True, False], ids=["signed", "unsigned"])
 def test_commands_for_another_target_are_dropped(signed):
     """Signed or not, only commands addressed to the companion's own system and component come out."""
@@ -129,7 +120,7 @@ def test_commands_for_another_target_are_dropped(signed):
     try:
         for marker, (ts, tc) in enumerate([(1, 191), (1, 1), (2, 191), (0, 0), (1, 0), (1, 191)]):
             gcs.conn.mav.command_long_send(ts, tc, 31010, 0, float(marker), 0, 0, 0, 0, 0, 0)
-        cmds = [m for m in _collect(companion) if m.get_type() == "COMMAND_LONG"]
+        cmds = [m for m in gather(companion.poll) if m.get_type() == "COMMAND_LONG"]
         assert [c.param1 for c in cmds] == [0.0, 5.0]
         assert companion.stats.not_for_us == 4
     finally:

@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import hashlib
-import time
 
 import pytest
 
 from nav.signing import CommandEndpoint, load_key
+from tests.polling import gather
 from tests.test_link import free_udp_port
 
 
@@ -24,15 +24,6 @@ def test_load_key_formats(tmp_path):
         load_key(tmp_path / "empty.key")
 
 
-def _collect(ep: CommandEndpoint, seconds: float = 0.5) -> list:
-    out = []
-    end = time.monotonic() + seconds
-    while time.monotonic() < end:
-        out += ep.poll()
-        time.sleep(0.01)
-    return out
-
-
 def test_signed_commands_accepted_unsigned_refused():
     key = hashlib.sha256(b"gsoe test key").digest()
     port = free_udp_port()
@@ -45,7 +36,7 @@ def test_signed_commands_accepted_unsigned_refused():
         for ep, marker in ((good_gcs, 1.0), (plain_gcs, 2.0), (wrong_gcs, 3.0)):
             ep.conn.mav.command_long_send(1, 191, 31010, 0, marker, 0, 0, 0, 0, 0, 0)
             ep.conn.mav.heartbeat_send(6, 8, 0, 0, 4)
-        msgs = _collect(companion)
+        msgs = gather(companion.poll)
         cmds = [m for m in msgs if m.get_type() == "COMMAND_LONG"]
         assert [c.param1 for c in cmds] == [1.0]  # only the correctly signed command
         assert companion.stats.refused_unsigned >= 1  # the unsigned command
@@ -62,7 +53,7 @@ def test_unsigned_endpoint_accepts_everything():
     gcs = CommandEndpoint(f"udpout:127.0.0.1:{port}", None, source_system=255)
     try:
         gcs.conn.mav.command_long_send(1, 191, 31010, 0, 7.0, 0, 0, 0, 0, 0, 0)
-        cmds = [m for m in _collect(companion) if m.get_type() == "COMMAND_LONG"]
+        cmds = [m for m in gather(companion.poll) if m.get_type() == "COMMAND_LONG"]
         assert [c.param1 for c in cmds] == [7.0]
     finally:
         companion.close()
