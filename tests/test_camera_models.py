@@ -19,11 +19,7 @@ from nav.imageseq import mount_rpy_deg_from_R_bc
 from pipeline.config import load_camera
 from sim.render import CameraRenderer
 from sim.textures import GroundWorld
-
-# A narrow oblique pinhole camera like CLIF's (image x forward, 9 deg to the right of the belly), scaled down.
-OBLIQUE = CameraConfig(model="pinhole", width_px=320, height_px=480, fx_px=1700.0, fy_px=1700.0, cx_px=160.0,
-                       cy_px=240.0, dist=(0.0, 0.0, 0.0, 0.0, 0.0), hfov_deg=10.8, vfov_deg=16.1,
-                       mount_rpy_deg=(0.0, -9.0, -92.0))
+from tests.turning_flight import OBLIQUE, turning_flight
 
 
 @pytest.mark.parametrize("rpy", [(0.0, 0.0, 0.0), (0.0, -9.0, -92.0), (170.0, 60.0, -150.0), (-30.0, 27.0, 90.0)])
@@ -42,22 +38,13 @@ def _fly(cfg: GsoeConfig, camera: CameraConfig, rng: np.random.Generator, n_fram
     cam = CameraModel.from_config(camera)
     renderer = CameraRenderer(cam, GroundWorld.from_name("town_river"))
     est = GsoeEstimator(cfg, cam, ahrs_latency_s=0.0)
-    pos, yaw, roll, t_s = np.array([0.0, 0.0, -height_m]), 0.3, math.radians(roll_deg), 0.0
-    turn_rad_s = math.radians(2.0)
     steps, track = [], []
-    for k in range(n_frames):
-        if k:
-            dt = rng.uniform(0.5, 1.2)
-            for _ in range(100):
-                pos += np.array([math.cos(yaw), math.sin(yaw), 0.0]) * speed_m_s * dt / 100
-                yaw -= turn_rad_s * dt / 100
-            t_s += dt
-        t_us = int(round(t_s * 1e6))
-        pitch = math.radians(5.0) + 0.01 * math.sin(k)
-        img = renderer.render(pos, R_nb_from_euler(roll, pitch, yaw), noise_std=1.0, rng=rng)
-        est.push_attitude(AttitudeSample(t_us, roll, pitch, yaw))
+    for p in turning_flight(rng, n_frames, height_m, speed_m_s, roll_deg):
+        t_us = int(round(p.t_s * 1e6))
+        img = renderer.render(p.pos_ned_m, R_nb_from_euler(p.roll_rad, p.pitch_rad, p.yaw_rad), noise_std=1.0, rng=rng)
+        est.push_attitude(AttitudeSample(t_us, p.roll_rad, p.pitch_rad, p.yaw_rad))
         steps.append(est.process_frame(t_us, img, height_m))
-        track.append(pos[:2].copy())
+        track.append(p.pos_ned_m[:2])
     out = []
     for k in range(1, n_frames):
         prev = {s.cycle_id: s for s in steps[k - 1]}

@@ -16,17 +16,14 @@ from scipy.spatial.transform import Rotation
 from cli.cmd_calibrate import camera_toml
 from cli.main import main
 from gsoe.camera import CameraModel
-from gsoe.config import CameraConfig
 from gsoe.rotation import R_bc_from_mount, R_nb_from_euler
 from nav.imageseq import SequenceError, read_clif2007, read_csv_sequence
 from nav.replay_frames import run_replay_frames
 from sim.render import CameraRenderer
 from sim.textures import GroundWorld
 from tests.conftest import shared_data
+from tests.turning_flight import OBLIQUE, turning_flight
 
-OBLIQUE = CameraConfig(model="pinhole", width_px=320, height_px=480, fx_px=1700.0, fy_px=1700.0, cx_px=160.0,
-                       cy_px=240.0, dist=(0.0, 0.0, 0.0, 0.0, 0.0), hfov_deg=10.8, vfov_deg=16.1,
-                       mount_rpy_deg=(0.0, -9.0, -92.0))
 HEIGHT_M = 300.0
 
 
@@ -36,18 +33,10 @@ def _write_sequence(folder, n_frames: int, rng: np.random.Generator, quaternion:
     cam = CameraModel.from_config(OBLIQUE)
     renderer = CameraRenderer(cam, GroundWorld.from_name("town_river"))
     R_bc = R_bc_from_mount(*np.radians(OBLIQUE.mount_rpy_deg))
-    speed, turn = 10.0, math.radians(2.0)
-    pos, yaw, roll, t_s = np.array([0.0, 0.0, -HEIGHT_M]), 0.3, math.radians(25.0), 0.0
+    speed = 10.0
     att_cols = "qw_nc,qx_nc,qy_nc,qz_nc" if quaternion else "roll_deg,pitch_deg,yaw_deg"
     lines = ["# rendered over the town tile", f"t_us,image,{att_cols},height_agl_m,vn_m_s,ve_m_s,vd_m_s"]
-    for k in range(n_frames):
-        if k:
-            dt = rng.uniform(0.5, 1.2)
-            for _ in range(100):
-                pos += np.array([math.cos(yaw), math.sin(yaw), 0.0]) * speed * dt / 100
-                yaw -= turn * dt / 100
-            t_s += dt
-        pitch = math.radians(5.0) + 0.01 * math.sin(k)
+    for k, t_s, pos, roll, pitch, yaw in turning_flight(rng, n_frames, HEIGHT_M, speed, 25.0):
         R_nb = R_nb_from_euler(roll, pitch, yaw)
         name = f"f{k:03d}.png"
         cv2.imwrite(str(folder / name), renderer.render(pos, R_nb, noise_std=1.0, rng=rng))
@@ -95,19 +84,19 @@ def test_csv_reader_euler_and_camera_quaternion_agree(tmp_path):
         assert fa.height_agl_m == HEIGHT_M and np.all(np.isfinite(fa.ref_vel_ned_m_s))
 
 
-def test_csv_reader_names_what_is_wrong(tmp_path):
+_HEAD = "t_us,image,roll_deg,pitch_deg,yaw_deg,height_agl_m\n"
+
+
+@pytest.mark.parametrize(("text", "error"), [
+    ("t_us,image,height_agl_m\n0,a.png,100\n", "roll_deg, pitch_deg, yaw_deg or the camera quaternion"),
+    ("t_us,image,roll_deg,pitch_deg,yaw_deg\n0,a.png,0,0,0\n", "missing column.*height_agl_m"),
+    (_HEAD + "5,a.png,0,0,0,100\n5,b.png,0,0,0,100\n", "line 3: t_us not increasing"),
+    (_HEAD + "0,a.png,0,x,0,100\n", "line 2"),
+])
+def test_csv_reader_names_what_is_wrong(tmp_path, text, error):
     p = tmp_path / "bad.csv"
-    p.write_text("t_us,image,height_agl_m\n0,a.png,100\n")
-    with pytest.raises(SequenceError, match="roll_deg, pitch_deg, yaw_deg or the camera quaternion"):
-        read_csv_sequence(p, OBLIQUE)
-    p.write_text("t_us,image,roll_deg,pitch_deg,yaw_deg\n0,a.png,0,0,0\n")
-    with pytest.raises(SequenceError, match="missing column.*height_agl_m"):
-        read_csv_sequence(p, OBLIQUE)
-    p.write_text("t_us,image,roll_deg,pitch_deg,yaw_deg,height_agl_m\n5,a.png,0,0,0,100\n5,b.png,0,0,0,100\n")
-    with pytest.raises(SequenceError, match="line 3: t_us not increasing"):
-        read_csv_sequence(p, OBLIQUE)
-    p.write_text("t_us,image,roll_deg,pitch_deg,yaw_deg,height_agl_m\n0,a.png,0,x,0,100\n")
-    with pytest.raises(SequenceError, match="line 2"):
+    p.write_text(text)
+    with pytest.raises(SequenceError, match=error):
         read_csv_sequence(p, OBLIQUE)
 
 
