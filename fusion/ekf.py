@@ -213,6 +213,19 @@ class NavEkf:
         self._timeline.process_due()
         return {name: row.snapshot() for name, row in self._rows.items()}
 
+    def take_states(self, names: Sequence[str], x: ArrayLike, P: ArrayLike) -> None:
+        """Set the named state fields (:data:`fusion.state.S`) to their values in another state ``x`` with
+        covariance ``P`` of the same layout (e.g. an earlier :attr:`x` and :attr:`P`), uncorrelated with the rest:
+        what a restart carries over from the last healthy filter (:mod:`pipeline.guard`).  ``ValueError`` when
+        ``x`` or ``P`` is misshapen or not finite."""
+        xa, Pa = np.asarray(x, dtype=float), np.asarray(P, dtype=float)
+        if xa.shape != (S.dim,) or Pa.shape != (S.dim, S.dim) or not (np.all(np.isfinite(xa))
+                                                                      and np.all(np.isfinite(Pa))):
+            raise ValueError(f"x, P: must be finite of shapes ({S.dim},) and ({S.dim}, {S.dim})")
+        self._timeline.process_due()
+        idx = S.idx(*names)
+        self._core.reset_states(idx, xa[idx], Pa[np.ix_(idx, idx)])
+
     def predict(self, imu: ImuSample, att: AttitudeSample) -> None:
         """Push one IMU sample (specific force m/s^2 and body rates rad/s, FRD, at ``imu.t_us``) with the AHRS
         attitude (3-2-1 Euler, rad) valid within ``att_max_age_s`` of it.  IMU stamps must increase.  The sample

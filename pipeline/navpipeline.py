@@ -15,7 +15,15 @@ runner (through ``gsoe sim``).  What it owns, each decided here once:
   (:meth:`NavPipeline.on_ground_level`, the baro altitude of the ground at the origin; 0 when the baro already is
   a height above it); the optical estimator takes the EKF's height above ground (before the EKF, the baro's);
 - the optical steps into the EKF and into the paper's baseline chain;
-- validity: the EKF's gate (``[ekf] valid_*``) and the estimate's age (``max_estimate_age_s``), nothing else;
+- the EKF divergence guard (:mod:`pipeline.guard`): a state beyond the airframe's bounds, or every aid source
+  refused for ``guard_all_fail_s``, drops the filter (no estimate, so nothing valid is sent) and the start policy
+  above starts it again: from the next usable GNSS fix while GNSS is enabled (a GNSS monitor's verdict), else, or
+  when none came within ``guard_gnss_wait_s``, from air data, placed at the last healthy estimate's position and
+  wind; the EKF's own reset of position/velocity to GNSS after continuous rejection is reported the same way.
+  Each is logged, counted in :attr:`NavPipeline.status`, written to the ``ekf_events`` stream and handed out by
+  :meth:`NavPipeline.drain_events` (the companion sends them as STATUSTEXT);
+- validity: the EKF's gate (``[ekf] valid_*``), the estimate's age (``max_estimate_age_s``) and the guard's
+  bounds, nothing else;
 - the log records, one builder per stream (:mod:`pipeline.records`), written through the caller's ``sink``.
 
 Times are ``t_us`` of one clock (the simulation's, the companion's monotonic clock, or the log's).
@@ -38,19 +46,26 @@ from numpy.typing import NDArray
 from common.config import In, Validated, build, with_profile
 from common.samples import AirspeedSample, AttitudeSample, BaroSample, GnssSample, GsoeStep, ImuSample
 from fusion.config import EkfConfig
-from fusion.ekf import NavEkf, NavEstimate
+from fusion.ekf import REASON_RESET_TO_MEAS, NavEkf, NavEstimate
+from fusion.state import S
 from gsoe.baseline import BaselineEstimate, PaperBaseline
 from gsoe.camera import CameraModel
 from gsoe.config import GsoeConfig
 from gsoe.cycle import GsoeEstimator
 from gsoe.stabilise import Frame
 from pipeline import records as rec
+from pipeline.guard import DivergenceGuard, GuardEvent, reason_test
 from pipeline.plausibility import SamplePlausibility
 
 log = logging.getLogger(__name__)
 
 US_PER_S = 1_000_000
 Sink = Callable[[str, dict[str, Any]], None]
+Healthy = tuple[NavEstimate, NDArray[np.float64], NDArray[np.float64]]
+HEALTHY_EVERY_US = 100_000  # healthy states kept one per this, ...
+HEALTHY_KEPT = 100          # ... this many (10 s)
+#: what a restart after a divergence carries over from the last healthy filter: all but position and velocity
+CARRIED_STATES = tuple(f for f in S.fields if not f.startswith(("pos_", "vel_", "base_pos_")))
 
 
 @dataclass(frozen=True)
@@ -84,6 +99,20 @@ class PipelineConfig(Validated):
     plausibility_max_gap_s: Annotated[float, In(0.0, 60.0)] = 0.5
     # this many consecutive rejected samples that agree with each other are a genuine change: the last is accepted
     plausibility_confirm_samples: Annotated[int, In(2, 1000)] = 3
+    # the EKF divergence guard (pipeline.guard; a bound of 0 switches its test off):
+    # a ground speed above this (m/s) is beyond the airframe: its top speed plus the strongest wind it flies in
+    guard_max_ground_speed_m_s: Annotated[float, In(0.0, 1000.0)] = 60.0
+    # a vertical speed above this (m/s, up or down) is beyond the airframe
+    guard_max_vertical_speed_m_s: Annotated[float, In(0.0, 1000.0)] = 30.0
+    # the height above the origin's ground level (m) must lie within these (0 as the upper bound: no height test)
+    guard_min_height_m: Annotated[float, In(-1e5, 0.0)] = -500.0
+    guard_max_height_m: Annotated[float, In(0.0, 1e5)] = 10_000.0
+    # every aid sample refused by its innovation gate for this long (s), none fused: the state is what is wrong
+    guard_all_fail_s: Annotated[float, In(0.0, 600.0)] = 1.0
+    # ... with at least this many aid sources refused
+    guard_min_failing_sources: Annotated[int, In(1, 20)] = 2
+    # after a divergence, a healthy GNSS fix is awaited this long (s; while GNSS is enabled) before air data
+    guard_gnss_wait_s: Annotated[float, In(0.0, 600.0)] = 1.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -106,8 +135,11 @@ class PipelineStatus:
     steps: int = 0
     steps_valid: int = 0
     estimator_errors: int = 0
-    ekf_started: str = ""           # how the EKF started ("" not yet)
+    ekf_started: str = ""           # how the EKF first started ("" not yet)
     ekf_start_t_us: int = -1
+    ekf_diverged: dict[str, int] = field(default_factory=dict)  # divergences (pipeline.guard) by test
+    ekf_resets: dict[str, int] = field(default_factory=dict)    # restarts after them, resets to GNSS, by source
+    last_ekf_event: str = ""        # the last divergence or reset, with its reason
     gnss_used: int = 0
     gnss_withheld: int = 0
     errors: dict[str, int] = field(default_factory=dict)
@@ -159,6 +191,15 @@ class NavPipeline:
         self._aid_written: dict[str, int] = {}
         self._last_estimate: NavEstimate | None = None
         self._compensated = cfg.attitude_source == "compensated"
+        self.guard = DivergenceGuard(cfg)
+        self._events: list[GuardEvent] = []
+        self._diverged = ""                 # why the filter was dropped, until it starts again
+        self._diverged_us = 0
+        # recorded estimates that were valid with no aid failing, with the filter's state and covariance, one per
+        # HEALTHY_EVERY_US at most; after a divergence the start policy restarts from ``_restart_from``
+        self._healthy: deque[Healthy] = deque(maxlen=HEALTHY_KEPT)
+        self._restart_from: Healthy | None = None
+        self._gnss_wait_us = round(cfg.guard_gnss_wait_s * US_PER_S)
         self._wait_us = round(cfg.attitude_wait_s * US_PER_S)
         self._ahead_us = round(cfg.max_frame_ahead_s * US_PER_S)
         self._air_wait_us = round(cfg.air_data_start_wait_s * US_PER_S)
@@ -293,20 +334,37 @@ class NavPipeline:
         return len(self._pending)
 
     def estimate(self) -> NavEstimate | None:
-        """The EKF's estimate with the one validity gate applied (None before the EKF starts)."""
+        """The EKF's estimate with the one validity gate applied (None before the EKF starts and while it is
+        dropped after a divergence)."""
         if self.ekf is None:
             return None
         e = self.ekf.estimate()
+        if not e.valid:
+            return e
         age_us = self._now_us - e.t_us
-        if e.valid and age_us > self._age_us:
+        if age_us > self._age_us:
             return dataclasses.replace(e, valid=False,
                                        invalid_reason=f"estimate stale ({age_us / US_PER_S:.1f} s old: no IMU)")
+        beyond = self.guard.bounds(e)
+        if beyond:
+            return dataclasses.replace(e, valid=False, invalid_reason=f"EKF diverged: {beyond}")
+        suspect = self.guard.suspect
+        if suspect:
+            return dataclasses.replace(e, valid=False, invalid_reason=f"EKF suspect: {suspect}")
         return e
 
     def why_no_estimate(self) -> str:
         if self.ekf_cfg is None:
             return "EKF disabled"
-        return "EKF waiting for a GNSS fix" + (" or air data" if self.cfg.ekf_start == "gnss_or_air_data" else "")
+        waiting = "GNSS fix" + (" or air data" if self.cfg.ekf_start == "gnss_or_air_data" else "")
+        if self._diverged:
+            return f"EKF diverged ({self._diverged}), restarting from a {waiting}"
+        return f"EKF waiting for a {waiting}"
+
+    def drain_events(self) -> list[GuardEvent]:
+        """The EKF's divergences and resets since the last call, in order (module docstring)."""
+        out, self._events = self._events, []
+        return out
 
     def aid_status(self) -> dict[str, Any]:
         return self.ekf.status() if self.ekf is not None else {}
@@ -352,11 +410,22 @@ class NavPipeline:
         if self._pending:
             self._process_ready()
 
-    def _start(self, t_us: int, pos_ned_m: NDArray[np.float64], vel_ned_m_s: NDArray[np.float64], how: str) -> None:
+    def _start(self, t_us: int, pos_ned_m: NDArray[np.float64], vel_ned_m_s: NDArray[np.float64], how: str,
+               wind_ne_m_s: NDArray[np.float64] | None = None) -> None:
         assert self.ekf_cfg is not None
-        self.ekf = NavEkf(self.ekf_cfg, t_us=int(t_us), pos_ned_m=pos_ned_m, vel_ned_m_s=vel_ned_m_s)
-        self.status.ekf_started = how
-        self.status.ekf_start_t_us = int(t_us)
+        self.ekf = NavEkf(self.ekf_cfg, t_us=int(t_us), pos_ned_m=pos_ned_m, vel_ned_m_s=vel_ned_m_s,
+                          wind_ne_m_s=wind_ne_m_s)
+        self.guard.restart()
+        if self._diverged and self._restart_from is not None:
+            _, x, P = self._restart_from
+            self.ekf.take_states(CARRIED_STATES, x, P)
+        if self._diverged:
+            self._ekf_event(t_us, "reset", f"EKF restarted from {how} after it diverged ({self._diverged})",
+                            f"GSOE EKF reset from {how}", how)
+            self._diverged = ""
+        if not self.status.ekf_started:
+            self.status.ekf_started = how
+            self.status.ekf_start_t_us = int(t_us)
         log.info("EKF started from %s at t=%d us, pos %s m, vel %s m/s", how, t_us, np.round(pos_ned_m, 1),
                  np.round(vel_ned_m_s, 1))
 
@@ -366,21 +435,63 @@ class NavPipeline:
         vel = np.array(s.vel_ned_m_s, dtype=float)
         if not math.isfinite(vel[2]):
             vel[2] = 0.0
-        self._start(s.t_us, np.array(s.pos_ned_m, dtype=float), vel, "the first GNSS fix")
+        good = self._restart_from if self._diverged else None
+        wind = np.array(good[0].wind_ne_m_s[:2]) if good is not None else None
+        self._start(s.t_us, np.array(s.pos_ned_m, dtype=float), vel,
+                    "GNSS" if self._diverged else "the first GNSS fix", wind_ne_m_s=wind)
         return True
 
     def _maybe_start_from_air_data(self) -> None:
-        if self.cfg.ekf_start != "gnss_or_air_data" or self._t_first_us is None:
+        """Air data: TAS along the AHRS heading, the baro's height; at the origin in still air, or after a
+        divergence at the last healthy estimate's position (carried on at its velocity) and in its wind (when no
+        healthy fix came within ``guard_gnss_wait_s``, or at once while GNSS is withheld)."""
+        if self.cfg.ekf_start != "gnss_or_air_data" or self._t_first_us is None or self._att is None:
             return
-        if self._now_us - self._t_first_us < self._air_wait_us or self._att is None:
+        if self._diverged:
+            if self.gnss_enabled and self._now_us - self._diverged_us < self._gnss_wait_us:
+                return
+        elif self._now_us - self._t_first_us < self._air_wait_us:
             return
         h = self.baro_height_m
         if not (math.isfinite(self._tas_m_s) and math.isfinite(h)):
             return
         yaw = self._att.yaw_rad
-        self._start(self._now_us, np.array([0.0, 0.0, -h]),
-                    np.array([self._tas_m_s * math.cos(yaw), self._tas_m_s * math.sin(yaw), 0.0]),
-                    "air data (no GNSS fix)")
+        pos_ne, wind = np.zeros(2), None
+        good = self._restart_from if self._diverged else None
+        if good is not None:
+            e = good[0]
+            dt_s = (self._now_us - e.t_us) / US_PER_S
+            pos_ne = np.array(e.pos_ne_m, dtype=float) + dt_s * np.array(e.vel_ned_m_s[:2], dtype=float)
+            wind = np.array(e.wind_ne_m_s, dtype=float)[:2]
+        vel_ne = self._tas_m_s * np.array([math.cos(yaw), math.sin(yaw)]) + (wind if wind is not None else 0.0)
+        self._start(self._now_us, np.array([*pos_ne, -h]), np.array([*vel_ne, 0.0]),
+                    "air data" if self._diverged else "air data (no GNSS fix)", wind_ne_m_s=wind)
+
+    def _ekf_event(self, t_us: int, kind: str, reason: str, text: str, key: str) -> None:
+        """A divergence or reset (module docstring): logged, counted, written and queued for the caller."""
+        counts = self.status.ekf_diverged if kind == "diverged" else self.status.ekf_resets
+        counts[key] = counts.get(key, 0) + 1
+        self.status.last_ekf_event = reason
+        log.warning("%s at t=%d us", reason, t_us)
+        ev = GuardEvent.make(t_us, kind, reason, text)
+        self._events.append(ev)
+        if self._sink is not None:
+            self._sink("ekf_events", ev.as_record())
+
+    def _diverge(self, e: NavEstimate, why: str) -> NavEstimate:
+        """The filter has diverged: dropped (nothing valid is sent until the start policy starts it again)."""
+        self._ekf_event(e.t_us, "diverged", f"EKF diverged: {why}", f"GSOE EKF diverged: {why}", reason_test(why))
+        # the state to restart from: healthy a whole failing window before the first refusal (the refusals come a
+        # little after the state went wrong, and a state recorded in between is wrong already)
+        first_us = self.guard.failing_since_us
+        before_us = (e.t_us if first_us is None else first_us) - round(self.cfg.guard_all_fail_s * US_PER_S)
+        self._restart_from = next((h for h in reversed(self._healthy) if h[0].t_us <= before_us),
+                                  self._healthy[0] if self._healthy else None)
+        self._healthy.clear()
+        self.ekf = None
+        self._last_estimate = None
+        self._diverged, self._diverged_us = why, self._now_us
+        return dataclasses.replace(e, valid=False, invalid_reason=f"EKF diverged: {why}")
 
     def _fuse_gnss(self, s: GnssSample) -> bool:
         assert self.ekf is not None
@@ -447,20 +558,34 @@ class NavPipeline:
         self._results.append(FrameResult(t_us, tuple(steps), tuple(base), e))
 
     def _record_ekf(self, t_us: int) -> NavEstimate:
-        """The estimate now, written to ``ekf.csv`` with the aid sources that changed since the last record."""
+        """The estimate now, judged by the divergence guard and written to ``ekf.csv`` with the aid sources that
+        changed since the last record; a reset of position or velocity to GNSS is reported."""
         assert self.ekf is not None
         e = self.ekf.estimate()
-        self._last_estimate = e
         self._last_ekf_record_us = t_us
-        if self._sink is not None:
-            wants = self._wants
-            if wants is None or wants("ekf", e.t_us):
-                self._sink("ekf", e.as_record())
-            for name, st in self.ekf.status().items():
-                if st.t_us != self._aid_written.get(name):
-                    self._aid_written[name] = st.t_us
-                    if wants is None or wants("aid_status", st.t_us, st.source, st.rejected):
-                        self._sink("aid_status", st.as_record())
+        status = self.ekf.status()
+        wants = self._wants
+        if self._sink is not None and (wants is None or wants("ekf", e.t_us)):
+            self._sink("ekf", e.as_record())
+        for name, st in status.items():
+            if st.t_us == self._aid_written.get(name):
+                continue
+            self._aid_written[name] = st.t_us
+            if st.reason == REASON_RESET_TO_MEAS:
+                assert self.ekf_cfg is not None
+                what = "position" if name == "gnss_pos" else "velocity"
+                self._ekf_event(st.t_us, "reset", f"EKF {what} reset to GNSS (refused for "
+                                f"{self.ekf_cfg.gnss.reset_after_s:g} s while the fixes were healthy)",
+                                f"GSOE EKF {what} reset to GNSS", name)
+            if self._sink is not None and (wants is None or wants("aid_status", st.t_us, st.source, st.rejected)):
+                self._sink("aid_status", st.as_record())
+        why = self.guard.check(e, status)
+        if why:
+            return self._diverge(e, why)
+        self._last_estimate = e
+        if (e.valid and not self.guard.failing
+                and (not self._healthy or e.t_us - self._healthy[-1][0].t_us >= HEALTHY_EVERY_US)):
+            self._healthy.append((e, self.ekf.x, self.ekf.P))
         return e
 
 

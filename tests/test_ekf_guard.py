@@ -1,0 +1,211 @@
+"""The EKF divergence guard (pipeline.guard, issue 23): a filter pushed into divergence by in-range IMU spikes that
+pass the plausibility tests (switched off here) is detected, nothing it says is valid while it is diverged, it is
+restarted from GNSS (or, with GNSS withheld, from air data at the last healthy position and wind), and within 5 s of
+clean data its estimate is valid and close to the truth again; the EKF's own reset of position and velocity to
+GNSS after continuous rejection is reported; a clean flight never trips the guard.
+
+The truth is test_pipeline's analytic straight, level flight (position = v t, level attitude along the course,
+specific force -g, still air), with optical steps synthesised from it (the template's migration at the base
+snapshot's ground sample distance, no noise), so the estimate is checked against numbers known exactly.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import pytest
+
+from common.samples import GnssSample, GsoeStep, ImuSample, MatchQuality
+from pipeline.guard import DivergenceGuard
+from pipeline.navpipeline import NavPipeline, PipelineConfig
+from tests.test_pipeline import HEIGHT_M, US, VEL_NE_M_S, Flight, make
+
+G = 9.80665
+FOCAL_PX = 300.0
+CYCLE_FRAMES = 10
+FRAME_EVERY = 10               # IMU samples per camera frame (10 Hz)
+RECOVERY_S = 5.0
+#: the plausibility tests off: the spikes must reach the EKF
+NO_PLAUSIBILITY = {"imu_max_accel_step_m_s2": 0.0, "imu_max_gyro_step_rad_s": 0.0, "gyro_ahrs_max_diff_rad_s": 0.0}
+
+
+class GuardedFlight(Flight):
+    """test_pipeline's flight plus optical steps from the truth, an IMU whose specific force can be replaced
+    (``spike``: t_us -> specific force or None), fixes that can be moved (``fix_offset``), and, at every IMU
+    sample, the estimate checked: what is valid must be within ``valid_tol`` of the truth."""
+
+    def __init__(self, pipe: NavPipeline, gnss: bool = True) -> None:
+        super().__init__(pipe, gnss)
+        self.spike: Any = lambda t_us: None
+        self.fix_offset = (np.zeros(3), np.zeros(3))
+        self.base_k: int | None = None
+        self.cycle = 0
+        self.worst_valid_vel_err = 0.0
+        self.wrong_valid_s = 0.0       # how long the estimate was valid with a velocity off by more than 1 m/s
+        self.valid_at: list[tuple[float, bool]] = []
+
+    def truth_pos(self, t_us: int) -> np.ndarray:
+        return np.array([*(VEL_NE_M_S * t_us / US), -HEIGHT_M])
+
+    def fix(self, t_us: int) -> GnssSample:
+        dp, dv = self.fix_offset
+        return GnssSample(t_us, self.truth_pos(t_us) + dp, np.array([*VEL_NE_M_S, 0.0]) + dv, True, 12,
+                          h_acc_m=1.0, v_acc_m_s=0.2)
+
+    def step(self, k: int) -> GsoeStep:
+        """The template's migration since the cycle's base (cross track 0, along track the distance flown)."""
+        assert self.base_k is not None
+        t_us, base_us = self.t_us(k), self.t_us(self.base_k)
+        gsd = HEIGHT_M / FOCAL_PX
+        along_px = float(np.hypot(*VEL_NE_M_S)) * (t_us - base_us) / US / gsd
+        n = (k - self.base_k) // FRAME_EVERY
+        q = MatchQuality(psr=8.0 if n else math.inf, texture_std=30.0, ssd_per_px=10.0, valid=True)
+        return GsoeStep(t_us=t_us, base_t_us=base_us, cycle_id=self.cycle, step=n, dx_px=0.0, dy_px=along_px,
+                        base_yaw_rad=self.yaw, yaw_rad=self.yaw, gsd_m_px=gsd, height_agl_m=HEIGHT_M,
+                        focal_px=FOCAL_PX, rel_rot_rad=0.0, quality=q, valid=True, new_cycle=n == 0)
+
+    def run(self, seconds: float, imu: bool = True) -> None:
+        from common.samples import AirspeedSample, AttitudeSample, BaroSample
+        p = self.pipe
+        for _ in range(round(seconds * 100)):
+            self.k += 1
+            k, t_us = self.k, self.t_us(self.k)
+            f = self.spike(t_us)
+            p.on_imu(ImuSample(t_us, np.zeros(3), np.array([0.0, 0.0, -G]) if f is None else np.asarray(f)))
+            p.on_attitude(AttitudeSample(t_us, 0.0, 0.0, self.yaw))
+            if k % 10 == 0:
+                p.on_airspeed(AirspeedSample(t_us, float(np.hypot(*VEL_NE_M_S))))
+                p.on_baro(BaroSample(t_us, HEIGHT_M))
+            if self.gnss and k % 20 == 0:
+                p.on_gnss(self.fix(t_us))
+            if k % FRAME_EVERY == 0:
+                steps = []
+                if self.base_k is not None and k - self.base_k >= CYCLE_FRAMES * FRAME_EVERY:
+                    steps.append(self.step(k))           # the cycle's last step; this frame is the next base
+                    self.base_k, self.cycle = None, self.cycle + 1
+                if self.base_k is None:
+                    self.base_k = k
+                steps.append(self.step(k))
+                p.on_steps(steps)
+            e = p.estimate()
+            valid = e is not None and e.valid
+            self.valid_at.append((t_us / US, valid))
+            if valid:
+                err = float(np.hypot(*(np.asarray(e.vel_ned_m_s[:2]) - VEL_NE_M_S)))
+                self.worst_valid_vel_err = max(self.worst_valid_vel_err, err)
+                self.wrong_valid_s += 0.01 * (err > 1.0)
+
+    def valid_again_after(self, t0_s: float) -> float | None:
+        """Seconds after ``t0_s`` until the estimate was last invalid (None: invalid at the end)."""
+        after = [(t, v) for t, v in self.valid_at if t >= t0_s]
+        if not after[-1][1]:
+            return None
+        last_bad = max((t for t, v in after if not v), default=t0_s)
+        return last_bad - t0_s
+
+
+def guarded(gsoe_config: Any, camera: Any, **pcfg: Any) -> tuple[NavPipeline, GuardedFlight, list[Any]]:
+    rows: list[Any] = []
+    pipe = make(gsoe_config, camera, sink=lambda s, r: rows.append((s, r)), **{**NO_PLAUSIBILITY, **pcfg})
+    return pipe, GuardedFlight(pipe), rows
+
+
+def spikes(t0_s: float, n: int = 6) -> Any:
+    """``n`` IMU samples from ``t0_s`` with the issue's accepted spikes: 155 m/s^2 forward and sideways."""
+    t0_us = round(t0_s * US)
+
+    def f(t_us: int) -> Any:
+        return (150.0, -120.0, -G) if t0_us <= t_us < t0_us + n * US // 100 else None
+    return f
+
+
+def test_a_clean_flight_never_trips_the_guard_and_its_estimate_is_valid(gsoe_config, camera):
+    pipe, fl, _ = guarded(gsoe_config, camera)
+    fl.run(30.0)
+    assert pipe.status.ekf_diverged == {} and pipe.status.ekf_resets == {} and pipe.drain_events() == []
+    e = pipe.estimate()
+    assert e is not None and e.valid, e.invalid_reason
+    np.testing.assert_allclose(e.vel_ned_m_s[:2], VEL_NE_M_S, atol=0.2)
+    assert fl.worst_valid_vel_err < 0.5
+
+
+def test_imu_spikes_diverge_the_filter_which_is_restarted_from_gnss_and_valid_within_5_s(gsoe_config, camera):
+    pipe, fl, rows = guarded(gsoe_config, camera)
+    fl.run(20.0)
+    assert pipe.estimate().valid
+    fl.spike = spikes(20.0)
+    fl.run(0.1)
+    fl.spike = spikes(-1.0, 0)
+    fl.run(8.0)
+    assert sum(pipe.status.ekf_diverged.values()) == 1, pipe.status
+    assert pipe.status.ekf_resets == {"GNSS": 1}, pipe.status
+    ev = pipe.drain_events()
+    assert [x.kind for x in ev] == ["diverged", "reset"] and all(len(x.text) <= 50 for x in ev)
+    assert ev[0].t_us < 21.5 * US and ev[1].t_us - ev[0].t_us < 0.5 * US
+    assert [r["kind"] for s, r in rows if s == "ekf_events"] == ["diverged", "reset"]
+    # a velocity 9.6 m/s off was valid only until the first refusals were seen (0.15 s here), not for the second
+    # until the divergence is declared, nor after it
+    assert fl.wrong_valid_s <= 0.2, fl.wrong_valid_s
+    back = fl.valid_again_after(20.1)
+    assert back is not None and back < RECOVERY_S, back
+    e = pipe.estimate()
+    np.testing.assert_allclose(e.vel_ned_m_s[:2], VEL_NE_M_S, atol=0.3)
+    np.testing.assert_allclose(e.pos_ne_m, fl.truth_pos(e.t_us)[:2], atol=5.0)
+
+
+def test_with_gnss_withheld_the_filter_restarts_from_air_data_at_the_last_healthy_position(gsoe_config, camera):
+    pipe, fl, _ = guarded(gsoe_config, camera)
+    fl.run(20.0)
+    pipe.gnss_enabled = False                  # the GNSS monitor says the fixes are not healthy
+    fl.run(2.0)
+    fl.spike = spikes(22.0)
+    fl.run(0.1)
+    fl.spike = spikes(-1.0, 0)
+    fl.run(8.0)
+    assert pipe.status.ekf_resets == {"air data": 1}, pipe.status
+    assert [x.kind for x in pipe.drain_events()] == ["diverged", "reset"]
+    assert fl.wrong_valid_s <= 0.2, fl.wrong_valid_s
+    back = fl.valid_again_after(22.1)
+    assert back is not None and back < RECOVERY_S, back
+    e = pipe.estimate()
+    np.testing.assert_allclose(e.vel_ned_m_s[:2], VEL_NE_M_S, atol=0.5)
+    # placed at the last healthy estimate (before the spikes) and flown on the optical steps since
+    np.testing.assert_allclose(e.pos_ne_m, fl.truth_pos(e.t_us)[:2], atol=10.0)
+
+
+@pytest.mark.parametrize("field,value,test", [
+    ("vel_ned_m_s", (80.0, 0.0, 0.0), "ground speed"),
+    ("vel_ned_m_s", (20.0, 0.0, -45.0), "vertical speed"),
+    ("height_m", -3872.0, "height"),
+    ("pos_ne_m", (math.nan, 0.0), "non-finite state"),
+])
+def test_the_bounds_name_what_is_beyond_the_airframe(gsoe_config, camera, field, value, test):
+    pipe, fl, _ = guarded(gsoe_config, camera)
+    fl.run(5.0)
+    e = pipe.estimate()
+    g = DivergenceGuard(PipelineConfig())
+    assert g.bounds(e) == ""
+    import dataclasses
+    bad = dataclasses.replace(e, **{field: np.array(value) if isinstance(value, tuple) else value})
+    assert g.bounds(bad).startswith(test)
+    assert DivergenceGuard(PipelineConfig(guard_max_ground_speed_m_s=0.0, guard_max_vertical_speed_m_s=0.0,
+                                          guard_max_height_m=0.0)).bounds(bad) == ("" if test != "non-finite state"
+                                                                                  else test)
+
+
+def test_fixes_that_stay_off_the_estimate_reset_its_position_and_velocity_and_say_so(gsoe_config, camera):
+    """The receiver is right and the EKF wrong (here: the fixes jump 300 m and 4 m/s and stay there): after
+    ``[ekf] gnss_reset_after_s`` of rejection the position and the velocity are the fixes', reported as resets."""
+    pipe, fl, rows = guarded(gsoe_config, camera)
+    fl.run(20.0)
+    dp, dv = np.array([300.0, -200.0, 0.0]), np.array([0.0, 4.0, 0.0])
+    fl.fix_offset = (dp, dv)
+    fl.run(8.0)
+    assert pipe.status.ekf_diverged == {}
+    assert pipe.status.ekf_resets.get("gnss_pos") == 1 and pipe.status.ekf_resets.get("gnss_vel", 0) >= 1
+    texts = [x.text for x in pipe.drain_events()]
+    assert "GSOE EKF position reset to GNSS" in texts and "GSOE EKF velocity reset to GNSS" in texts
+    e = pipe.estimate()
+    np.testing.assert_allclose(e.pos_ne_m, fl.truth_pos(e.t_us)[:2] + dp[:2], atol=10.0)
