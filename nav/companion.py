@@ -15,7 +15,7 @@ One synchronous loop (the link's asyncio runs in its own thread, the camera read
    while it is valid (:func:`nav.link.check_estimate` says why not; an
    estimate older than ``max_estimate_age_s``, e.g. while no IMU arrives, is invalid), announce every change of
    validity (STATUSTEXT, at most one per ``announce_min_interval_s``; the ``GSOE_VALID`` named value carries the
-   live state);
+   live state), and every divergence and reset of the EKF (:mod:`pipeline.guard`: STATUSTEXT and ``events.csv``);
 5. track the designated target (the belly camera's template tracker, or an external tracker over MAVLink,
    ``[companion.tracking]``) and send the heading command (:mod:`nav.guidance`);
 6. log every input, estimate and output through :class:`common.logio.RunLog` (append-only, flushed at least every
@@ -605,7 +605,11 @@ class Companion:
         self._handle_results()
 
     def _handle_results(self) -> None:
-        """Outputs and guidance for every frame the pipeline processed."""
+        """The EKF's divergences and resets announced; outputs and guidance for every frame the pipeline
+        processed."""
+        for ev in self.pipe.drain_events():
+            self._event("ekf", f"{ev.kind}: {ev.reason}", logging.WARNING, ev.t_us)
+            self.link.send_statustext(ev.text, "warning")
         for res in self.pipe.drain():
             g = None
             while self._given and self._given[0].t_us <= res.t_us:

@@ -209,3 +209,70 @@ def test_fixes_that_stay_off_the_estimate_reset_its_position_and_velocity_and_sa
     assert "GSOE EKF position reset to GNSS" in texts and "GSOE EKF velocity reset to GNSS" in texts
     e = pipe.estimate()
     np.testing.assert_allclose(e.pos_ne_m, fl.truth_pos(e.t_us)[:2] + dp[:2], atol=10.0)
+
+
+class CompanionFeed:
+    """The flight's samples through the companion's estimator (GNSS monitor + pipeline), as the link gives them:
+    fixes with their altitude above mean sea level (home at 0 m), the home report after the first baro sample."""
+
+    def __init__(self, est: Any) -> None:
+        self.est = est
+        self.home_sent = False
+
+    def __getattr__(self, name: str) -> Any:        # on_imu, on_attitude, on_airspeed, on_steps, estimate
+        if name in ("on_imu", "on_attitude", "on_airspeed"):
+            return self.est.feed
+        return getattr(self.est.pipe, name)
+
+    def on_baro(self, s: Any) -> None:
+        from nav.link import HomeReading
+        self.est.feed(s)
+        if not self.home_sent:
+            self.est.feed(HomeReading(s.t_us, HEIGHT_M, HEIGHT_M))
+            self.home_sent = True
+
+    def on_gnss(self, s: GnssSample) -> None:
+        import dataclasses
+        self.est.feed(dataclasses.replace(s, alt_msl_m=float(-s.pos_ned_m[2])))
+
+
+def test_a_healthy_receiver_that_disagrees_with_the_ekf_resets_it_through_the_companion(gsoe_config, camera):
+    """The issue's late start: no fix for the first 14 s, so the EKF starts from air data at the origin, 180 m from
+    the truth; the receiver's consistent track is never a jump, the monitor passes it after its recovery wait, the
+    EKF refuses it for ``gnss_reset_after_s`` and then resets its position to it, and the companion announces it."""
+    from nav.companion import CompanionConfig, CompanionEstimator
+    from pipeline.config import load_gsoe_config
+
+    raw = load_gsoe_config()[1]
+    raw = {**raw, "ekf": {**raw["ekf"], "valid_drift_sigma_max_deg": 30.0}}
+    est = CompanionEstimator(gsoe_config, camera, raw, CompanionConfig())
+    fl = GuardedFlight(est.pipe, gnss=False)
+    fl.pipe = CompanionFeed(est)              # type: ignore[assignment]
+    fl.run(14.0)
+    assert est.pipe.status.ekf_started == "air data (no GNSS fix)"
+    e = est.pipe.estimate()
+    assert np.hypot(*(e.pos_ne_m - fl.truth_pos(e.t_us)[:2])) > 150.0
+    fl.gnss = True
+    fl.run(14.0)
+    assert est.monitor.jumps == 0 and est.monitor.state.name == "GNSS_OK"
+    assert est.pipe.status.ekf_resets.get("gnss_pos") == 1, est.pipe.status
+    assert est.pipe.status.ekf_diverged == {}
+    e = est.pipe.estimate()
+    assert e.valid, e.invalid_reason
+    np.testing.assert_allclose(e.pos_ne_m, fl.truth_pos(e.t_us)[:2], atol=5.0)
+    np.testing.assert_allclose(e.vel_ned_m_s[:2], VEL_NE_M_S, atol=0.3)
+
+    # what the companion makes of the pipeline's events: a line in events.csv and a STATUSTEXT each
+    from types import SimpleNamespace
+
+    from nav.companion import Companion
+    app = Companion.__new__(Companion)
+    sent: list[tuple[str, str]] = []
+    logged: list[tuple[str, str]] = []
+    app.link = SimpleNamespace(send_statustext=lambda text, severity: sent.append((text, severity)))
+    app._event = lambda kind, detail, level, t_us: logged.append((kind, detail))  # type: ignore[method-assign]
+    app.pipe = est.pipe
+    est.pipe.drain()                            # the frames' results (outputs, guidance) are not this test's
+    app._handle_results()
+    assert sent == [("GSOE EKF position reset to GNSS", "warning")]
+    assert len(logged) == 1 and logged[0][0] == "ekf" and logged[0][1].startswith("reset: EKF position reset")
