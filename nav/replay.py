@@ -109,7 +109,7 @@ OPTICAL_SOURCE_SYNTHETIC = "synthetic_from_gnss_velocity"
 OPTICAL_SOURCE_NONE = "none"
 PLOT_DPI = 90
 #: CSV streams (:mod:`common.logio`) a replay writes into its output folder.
-CSV_STREAMS = ("ekf", "aid_status", "gsoe", "gnss", "autopilot_wind")
+CSV_STREAMS = ("ekf", "aid_status", "gsoe", "gnss", "autopilot_wind", "samples_rejected", "ekf_events")
 
 #: the configuration profile a replay of telemetry runs with (``[ekf.profiles.*]``, ``[pipeline.profiles.*]``)
 REPLAY_PROFILE = "telemetry_replay"
@@ -607,6 +607,7 @@ def run_replay(log_path: str | Path, *, out_dir: str | Path | None = None, confi
         "seed": seed, "gnss_off_at_s": gnss_off_at_s, "ekf_start_s": t_init / US_PER_S,
         "n_samples": {**report.counts, "GsoeStep": len(steps)}, "sources": dict(report.sources),
         "aid_fused": {k: {"fused": s.n_fused, "rejected": s.n_rejected} for k, s in ekf.status().items()},
+        "samples_rejected": dict(pipe.plausibility.status.rejected),   # pipeline.plausibility, by kind: reason
         "baro_offset_m": baro_offset_m,
         "gnss_delay_s": rcfg.gnss_delay_s,
         "ekf_replay_profile": REPLAY_PROFILE,

@@ -276,3 +276,27 @@ def test_a_healthy_receiver_that_disagrees_with_the_ekf_resets_it_through_the_co
     app._handle_results()
     assert sent == [("GSOE EKF position reset to GNSS", "warning")]
     assert len(logged) == 1 and logged[0][0] == "ekf" and logged[0][1].startswith("reset: EKF position reset")
+
+
+def test_replay_metrics_count_the_samples_the_pipeline_rejected(tmp_path):
+    """``gsoe replay``'s metrics.json carries the plausibility rejections by kind and reason, the same counts as its
+    ``samples_rejected`` log (a rate-jump threshold of 0.05 rad/s makes some: the log's own has none)."""
+    import json
+
+    from common.configfile import DEFAULT_CONFIG
+    from common.logio import read_log
+    from nav.replay import run_replay
+    from tests.conftest import shared_data
+    from tests.test_replay import SHORT
+
+    text = DEFAULT_CONFIG.read_text().replace("imu_max_gyro_step_rad_s = 3.0", "imu_max_gyro_step_rad_s = 0.05")
+    cfg = tmp_path / "config.toml"
+    cfg.write_text(text.replace('file = "', f'file = "{DEFAULT_CONFIG.parent}/'))
+    out = tmp_path / "out"
+    run_replay(shared_data("flightlogs", SHORT), out_dir=out, config_path=cfg, plots=False)
+    m = json.loads((out / "metrics.json").read_text())
+    r = read_log(out / "samples_rejected.csv")
+    want: dict[str, int] = {}
+    for kind, reason in zip(r["kind"], r["reason"], strict=True):
+        want[f"{kind}: {reason}"] = want.get(f"{kind}: {reason}", 0) + 1
+    assert want and m["samples_rejected"] == want
