@@ -570,6 +570,11 @@ def true_airspeed_m_s(eas_m_s: float, pressure_pa: float, temperature_k: float) 
     return eas_m_s * math.sqrt(RHO0_KG_M3 / rho)
 
 
+def _finite(*values: object) -> bool:
+    """Whether every value is a finite number (telemetry fields may be anything a sender put there)."""
+    return all(isinstance(v, int | float) and math.isfinite(v) for v in values)
+
+
 def _field(f: dict[str, Any], name: str) -> float:
     """A numeric field of a message (MAVSDK's JSON writes NaN as null)."""
     v = f[name]
@@ -802,78 +807,53 @@ class TelemetryGuard:
     def _ok(self, kind: str) -> None:
         self.accepted[kind] = self.accepted.get(kind, 0) + 1
 
+    def _accept(self, kind: str, vehicle_us: int, usable: bool, in_range: Callable[[], bool],
+                unusable: str = "not finite") -> int | None:
+        """The samples' time of a reading of ``kind`` (:meth:`_stamp`), counted as accepted; None, the reason
+        counted, when it is not ``usable`` (``unusable`` says why), not ``in_range()`` (asked only of a usable one)
+        or its stamp is refused."""
+        if not usable:
+            self._reject(kind, unusable)
+            return None
+        if not in_range():
+            self._reject(kind, "out of range")
+            return None
+        t = self._stamp(kind, vehicle_us)
+        if t is not None:
+            self._ok(kind)
+        return t
+
     def attitude(self, roll_deg: float, pitch_deg: float, yaw_deg: float, vehicle_us: int) -> AttitudeSample | None:
-        vals = (roll_deg, pitch_deg, yaw_deg)
-        if not all(isinstance(v, int | float) and math.isfinite(v) for v in vals):
-            self._reject("attitude", "not finite")
-            return None
-        roll, pitch, yaw = (math.radians(v) for v in vals)
-        if abs(roll) > math.pi or abs(pitch) > MAX_PITCH_RAD or abs(yaw) > 2 * math.pi:
-            self._reject("attitude", "out of range")
-            return None
-        t = self._stamp("attitude", vehicle_us)
-        if t is None:
-            return None
-        self._ok("attitude")
-        return AttitudeSample(t, roll, pitch, yaw)
+        usable = _finite(roll_deg, pitch_deg, yaw_deg)
+        roll, pitch, yaw = (math.radians(v) if usable else math.nan for v in (roll_deg, pitch_deg, yaw_deg))
+        t = self._accept("attitude", vehicle_us, usable,
+                         lambda: abs(roll) <= math.pi and abs(pitch) <= MAX_PITCH_RAD and abs(yaw) <= 2 * math.pi)
+        return None if t is None else AttitudeSample(t, roll, pitch, yaw)
 
     def imu(self, gyro: tuple[float, float, float], accel: tuple[float, float, float],
             vehicle_us: int) -> ImuSample | None:
         g = np.asarray(gyro, dtype=np.float64)
         a = np.asarray(accel, dtype=np.float64)
-        if not (np.all(np.isfinite(g)) and np.all(np.isfinite(a))):
-            self._reject("imu", "not finite")
-            return None
-        if np.max(np.abs(g)) > MAX_GYRO_RAD_S or np.max(np.abs(a)) > MAX_ACCEL_M_S2:
-            self._reject("imu", "out of range")
-            return None
-        t = self._stamp("imu", vehicle_us)
-        if t is None:
-            return None
-        self._ok("imu")
-        return ImuSample(t, g, a)
+        t = self._accept("imu", vehicle_us, bool(np.all(np.isfinite(g)) and np.all(np.isfinite(a))),
+                         lambda: np.max(np.abs(g)) <= MAX_GYRO_RAD_S and np.max(np.abs(a)) <= MAX_ACCEL_M_S2)
+        return None if t is None else ImuSample(t, g, a)
 
     def airspeed(self, tas_m_s: float, vehicle_us: int = 0) -> AirspeedSample | None:
         """A true airspeed (stamped ``vehicle_us``, or the newest autopilot stamp when it carries none)."""
-        if not (isinstance(tas_m_s, int | float) and math.isfinite(tas_m_s)):
-            self._reject("airspeed", "not finite")
-            return None
-        if not 0.0 <= tas_m_s <= MAX_AIRSPEED_M_S:
-            self._reject("airspeed", "out of range")
-            return None
-        t = self._stamp("airspeed", vehicle_us)
-        if t is None:
-            return None
-        self._ok("airspeed")
-        return AirspeedSample(t, float(tas_m_s))
+        t = self._accept("airspeed", vehicle_us, _finite(tas_m_s), lambda: 0.0 <= tas_m_s <= MAX_AIRSPEED_M_S)
+        return None if t is None else AirspeedSample(t, float(tas_m_s))
 
     def baro(self, pressure_hpa: float, vehicle_us: int) -> BaroSample | None:
-        if not (isinstance(pressure_hpa, int | float) and math.isfinite(pressure_hpa)) or pressure_hpa <= 0.0:
-            self._reject("baro", "not finite or not positive")
-            return None
-        alt = pressure_altitude_m(pressure_hpa)
-        if not ALT_RANGE_M[0] <= alt <= ALT_RANGE_M[1]:
-            self._reject("baro", "out of range")
-            return None
-        t = self._stamp("baro", vehicle_us)
-        if t is None:
-            return None
-        self._ok("baro")
-        return BaroSample(t, alt, pressure_pa=float(pressure_hpa) * 100.0)
+        usable = _finite(pressure_hpa) and pressure_hpa > 0.0
+        alt = pressure_altitude_m(pressure_hpa) if usable else math.nan
+        t = self._accept("baro", vehicle_us, usable, lambda: ALT_RANGE_M[0] <= alt <= ALT_RANGE_M[1],
+                         unusable="not finite or not positive")
+        return None if t is None else BaroSample(t, alt, pressure_pa=float(pressure_hpa) * 100.0)
 
     def home(self, alt_amsl_m: float, rel_alt_m: float, vehicle_us: int = 0) -> HomeReading | None:
-        vals = (alt_amsl_m, rel_alt_m)
-        if not all(isinstance(v, int | float) and math.isfinite(v) for v in vals):
-            self._reject("position", "not finite")
-            return None
-        if not (ALT_RANGE_M[0] <= alt_amsl_m <= ALT_RANGE_M[1] and abs(rel_alt_m) <= ALT_RANGE_M[1]):
-            self._reject("position", "out of range")
-            return None
-        t = self._stamp("position", vehicle_us)
-        if t is None:
-            return None
-        self._ok("position")
-        return HomeReading(t, float(alt_amsl_m), float(rel_alt_m))
+        t = self._accept("position", vehicle_us, _finite(alt_amsl_m, rel_alt_m),
+                         lambda: ALT_RANGE_M[0] <= alt_amsl_m <= ALT_RANGE_M[1] and abs(rel_alt_m) <= ALT_RANGE_M[1])
+        return None if t is None else HomeReading(t, float(alt_amsl_m), float(rel_alt_m))
 
     def tracking(self, f: dict[str, Any]) -> TrackReading | None:
         """CAMERA_TRACKING_IMAGE_STATUS fields: an active point in [0, 1]^2, or an inactive report (NaN point)."""
