@@ -209,12 +209,11 @@ class GsoeEstimator:
             return self._start(t_us, image, att, height_agl_m)
         rel = self.buffer.relative_rotation(c.base_t_us, t_us, self.cfg.stab.use_gyro)
         q_nb = quat.mul(c.q_nb0, rel) if rel is not None else att
-        R_nb = quat.to_matrix(q_nb)
         ratio = c.height_agl_m / height_agl_m if (math.isfinite(height_agl_m) and height_agl_m > 0
                                                   and math.isfinite(c.height_agl_m)) else 1.0
         if not self.cfg.stab.scale_template_to_base:
             ratio = 1.0
-        yaw_now = math.atan2(R_nb[1, 0], R_nb[0, 0])
+        yaw_now = quat.yaw(q_nb)
         exp_last = self._expected_step(c.last_step_xy, c.last_step_dt_us, t_us - c.last_t_us)
         exp_carried = self._expected_step(c.carried_step_xy, c.carried_step_dt_us, t_us - c.last_t_us)
         # the template's expected position (nadir terms); "view" mode also trusts a step carried from the last cycle,
@@ -224,9 +223,9 @@ class GsoeEstimator:
         pred = c.last_xy if exp_pred is None else (c.last_xy[0] + exp_pred[0], c.last_xy[1] + exp_pred[1])
         if self._view:
             off_k = self._template_offset(c, pred)
-            tpl = self.vcam.sample_template(image, R_nb, c.base_yaw_rad, ratio, off_k)
+            tpl = self.vcam.sample_template(image, q_nb, c.base_yaw_rad, ratio, off_k)
         else:
-            tpl = self.vcam.sample_template(image, R_nb, c.base_yaw_rad, ratio)
+            tpl = self.vcam.sample_template(image, q_nb, c.base_yaw_rad, ratio)
         c.step += 1
         if not tpl.valid:
             return [self._step(t_us, c, c.last_xy, _NO_QUALITY, False, yaw_now, rel)] + self._restart(
@@ -265,7 +264,7 @@ class GsoeEstimator:
         c.last_xy = xy
         nxt = (xy[0] + step_xy[0], xy[1] + step_xy[1])
         if self._view:
-            at_edge = not self.vcam.template_fits(R_nb, c.base_yaw_rad, ratio, self._template_offset(c, nxt))
+            at_edge = not self.vcam.template_fits(q_nb, c.base_yaw_rad, ratio, self._template_offset(c, nxt))
         else:
             at_edge = not (self._u_lim[0] <= nxt[0] <= self._u_lim[1]
                            and self._v_lim[0] <= nxt[1] <= self._v_lim[1])

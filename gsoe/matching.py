@@ -311,7 +311,7 @@ def _log_psr_and_gap(surface: NDArray, iu: int, iv: int, exclude: int, floor: fl
     # surface is set below everything)
     eroded = cv2.erode(log_s, _KERNEL_3X3, borderType=cv2.BORDER_REPLICATE)
     eroded[rows, cols] = -np.inf
-    other_min, _, loc, _ = cv2.minMaxLoc(log_s, mask=(log_s <= eroded).view(np.uint8))
+    other_min, _, loc, _ = cv2.minMaxLoc(log_s, mask=cv2.compare(log_s, eroded, cv2.CMP_LE))
     gap = (other_min - l_min) / side_std if loc[0] >= 0 else math.inf     # (-1, -1): no other valley in view
     return (psr if math.isfinite(psr) else 0.0), gap
 
@@ -404,7 +404,7 @@ def match_template(base: NDArray, template: NDArray, cfg: MatchConfig,
     sx = sy = 0.0
     if start_xy is not None:
         try:
-            sx, sy = (float(c) for c in start_xy)
+            sx, sy = map(float, start_xy)
         except (TypeError, ValueError):
             raise ValueError(f"start_xy: expected two numbers (x, y), got {start_xy!r}") from None
         if not (math.isfinite(sx) and math.isfinite(sy)):
@@ -479,7 +479,7 @@ def _match_in(base32: NDArray[np.float32], tpl32: NDArray[np.float32], u0: int, 
     minimum on the edge of that window is on the border (the true one may lie outside)."""
     th, tw = tpl32.shape
     region = base32[v0:v1 + th, u0:u1 + tw]
-    if not math.isfinite(float(region.sum(dtype=np.float64))):
+    if not cv2.checkRange(region)[0]:
         return _invalid("non-finite pixel values")
     surface = cv2.matchTemplate(region, tpl32, cv2.TM_SQDIFF)
     _, ssd_max, (lu, lv), _ = cv2.minMaxLoc(surface)

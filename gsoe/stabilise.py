@@ -31,8 +31,10 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from gsoe import quat
 from gsoe.camera import CameraModel
 from gsoe.matching import to_intensity
+from gsoe.quat import Quat
 from gsoe.rotation import R_z
 
 #: A view-centred base image (``stab.roi_centre = "view"``) needs the raw image's centre ray at least this far below
@@ -92,22 +94,30 @@ class PatchSampler:
         self._nodes_fr = np.column_stack([(ref_uv[1] - vv).ravel(), (uu - ref_uv[0]).ravel()])
         self._grid_shape = uu.shape
         self._rays_h = np.ones((self._nodes_fr.shape[0], 3))
+        # the grid's four corner nodes (row-major): every node's ray lies in their cone
+        nu, nv = nodes_u.size, nodes_v.size
+        self._corners = np.array(sorted({0, nu - 1, (nv - 1) * nu, nv * nu - 1}), dtype=np.intp)
         # pixel (row-major) from the nodes (row-major): A_v (x) A_u, for the small patches
         joint = width_px * height_px * self._nodes_fr.shape[0] <= _JOINT_INTERP_MAX
         self._A_joint = np.kron(self._A_v, self._A_u) if joint else None
+        # the joint product's float32 2-channel map (x, y) per pixel, written in place each frame
+        self._xy = np.empty((height_px, width_px, 2), np.float32) if joint else None
         self._R_z: tuple[float, NDArray[np.float64]] = (math.nan, np.eye(3))    # the last heading's R_z
 
-    def _pixels(self, R_cn: NDArray[np.float64], base_yaw_rad: float, scale: float,
+    def R_hc(self, R_cn: NDArray[np.float64], base_yaw_rad: float) -> NDArray[np.float64]:
+        """Camera-to-heading-frame rotation (the heading frame: NED turned by ``base_yaw_rad``)."""
+        if self._R_z[0] != base_yaw_rad:          # one heading per cycle
+            self._R_z = (base_yaw_rad, R_z(base_yaw_rad))
+        return (R_cn @ self._R_z[1]).T
+
+    def _pixels(self, R_hc: NDArray[np.float64], scale: float,
                 offset_fwd_right_px: tuple[float, float]) -> NDArray[np.float64] | None:
         """Raw-frame pixels (N, 2) of the grid nodes, or None when one leaves the frame.  (A per-frame path of a
         few small arrays: every NumPy call costs about a microsecond, so they are few.)"""
         rays_h = self._rays_h
         nodes = self._nodes_fr if offset_fwd_right_px == (0.0, 0.0) else self._nodes_fr + offset_fwd_right_px
         np.multiply(nodes, scale, out=rays_h[:, :2])
-        if self._R_z[0] != base_yaw_rad:          # one heading per cycle
-            self._R_z = (base_yaw_rad, R_z(base_yaw_rad))
-        rays_c = rays_h @ (R_cn @ self._R_z[1]).T
-        return self.camera.project_in_frame(rays_c)
+        return self.camera.project_in_frame(rays_h @ R_hc, self._corners)
 
     def sample_map(self, R_cn: NDArray[np.float64], base_yaw_rad: float, scale: float,
                    offset_fwd_right_px: tuple[float, float] = (0.0, 0.0)
@@ -118,7 +128,13 @@ class PatchSampler:
         height (``1 / focal_px`` times the height ratio base/current); ``offset_fwd_right_px`` shifts the
         reference ground point (in stabilised pixels).
         """
-        px = self._pixels(R_cn, base_yaw_rad, scale, offset_fwd_right_px)
+        return self.sample_map_h(self.R_hc(R_cn, base_yaw_rad), scale, offset_fwd_right_px)
+
+    def sample_map_h(self, R_hc: NDArray[np.float64], scale: float,
+                     offset_fwd_right_px: tuple[float, float] = (0.0, 0.0)
+                     ) -> tuple[NDArray[np.float32], NDArray[np.float32], bool]:
+        """:meth:`sample_map` from the camera-to-heading-frame rotation ``R_hc`` (:meth:`R_hc`)."""
+        px = self._pixels(R_hc, scale, offset_fwd_right_px)
         if px is None:
             return np.empty((0, 0), np.float32), np.empty((0, 0), np.float32), False
         # both maps interpolated at once: (2, nodes_v, nodes_u) -> (2, height, width)
@@ -127,15 +143,21 @@ class PatchSampler:
 
     def sample(self, raw: Frame, R_cn: NDArray[np.float64], base_yaw_rad: float, scale: float,
                offset_fwd_right_px: tuple[float, float] = (0.0, 0.0)) -> Patch:
+        return self.sample_h(raw, self.R_hc(R_cn, base_yaw_rad), scale, offset_fwd_right_px)
+
+    def sample_h(self, raw: Frame, R_hc: NDArray[np.float64], scale: float,
+                 offset_fwd_right_px: tuple[float, float] = (0.0, 0.0)) -> Patch:
+        """:meth:`sample` from the camera-to-heading-frame rotation ``R_hc`` (:meth:`R_hc`)."""
         joint = self._A_joint
-        xy = None
-        if joint is None:
-            map_x, map_y, ok = self.sample_map(R_cn, base_yaw_rad, scale, offset_fwd_right_px)
+        xy = self._xy
+        if joint is None or xy is None:
+            map_x, map_y, ok = self.sample_map_h(R_hc, scale, offset_fwd_right_px)
+            xy = None
         else:                         # one product, one 2-channel map (x, y) per pixel
-            px = self._pixels(R_cn, base_yaw_rad, scale, offset_fwd_right_px)
+            px = self._pixels(R_hc, scale, offset_fwd_right_px)
             ok = px is not None
             if px is not None:
-                xy = (joint @ px).astype(np.float32).reshape(self.height_px, self.width_px, 2)
+                np.matmul(joint, px, out=xy.reshape(-1, 2))
                 map_x, map_y = xy[:, :, 0], xy[:, :, 1]
         if not ok:
             return Patch(np.zeros((self.height_px, self.width_px), np.float32), False)
@@ -162,28 +184,37 @@ class VirtualNadirCamera:
         half = (template_px - 1) / 2.0
         self.base = PatchSampler(camera, base_size_px[0], base_size_px[1], base_ref_uv, grid_px)
         self.template = PatchSampler(camera, template_px, template_px, (half, half), grid_px)
+        self._q_bc = quat.from_matrix(camera.R_bc)
+        self._q_hn: tuple[float, Quat] = (math.nan, quat.IDENTITY)    # the last heading's NED-to-heading rotation
 
     def R_cn(self, R_nb: NDArray[np.float64]) -> NDArray[np.float64]:
         """NED-to-camera rotation for a body attitude ``R_nb`` (3x3)."""
         return self.camera.R_bc.T @ R_nb.T
+
+    def R_hc(self, q_nb: Quat, base_yaw_rad: float) -> NDArray[np.float64]:
+        """Camera-to-heading-frame rotation for a body attitude ``q_nb``: one product of quaternions, one matrix
+        (the per-frame path)."""
+        if self._q_hn[0] != base_yaw_rad:          # one heading per cycle
+            self._q_hn = (base_yaw_rad, (math.cos(0.5 * base_yaw_rad), 0.0, 0.0, -math.sin(0.5 * base_yaw_rad)))
+        return quat.to_matrix(quat.mul(quat.mul(self._q_hn[1], q_nb), self._q_bc))
 
     def sample_base(self, raw: Frame, R_nb: NDArray[np.float64], base_yaw_rad: float,
                     offset_fwd_right_px: tuple[float, float] = (0.0, 0.0)) -> Patch:
         """Base image around the nadir, or ``offset_fwd_right_px`` (stabilised px) away from it."""
         return self.base.sample(raw, self.R_cn(R_nb), base_yaw_rad, 1.0 / self.focal_px, offset_fwd_right_px)
 
-    def sample_template(self, raw: Frame, R_nb: NDArray[np.float64], base_yaw_rad: float,
+    def sample_template(self, raw: Frame, q_nb: Quat, base_yaw_rad: float,
                         height_ratio: float, offset_fwd_right_px: tuple[float, float] = (0.0, 0.0)) -> Patch:
-        """Template at the current nadir, or ``offset_fwd_right_px`` away from it (in the base image's pixels);
-        ``height_ratio = h_base / h_now`` rescales it to the base image's GSD."""
-        return self.template.sample(raw, self.R_cn(R_nb), base_yaw_rad, height_ratio / self.focal_px,
-                                    offset_fwd_right_px)
+        """Template at the current nadir (body attitude ``q_nb``), or ``offset_fwd_right_px`` away from it (in the
+        base image's pixels); ``height_ratio = h_base / h_now`` rescales it to the base image's GSD."""
+        return self.template.sample_h(raw, self.R_hc(q_nb, base_yaw_rad), height_ratio / self.focal_px,
+                                      offset_fwd_right_px)
 
-    def template_fits(self, R_nb: NDArray[np.float64], base_yaw_rad: float, height_ratio: float,
+    def template_fits(self, q_nb: Quat, base_yaw_rad: float, height_ratio: float,
                       offset_fwd_right_px: tuple[float, float]) -> bool:
-        """Whether a template at ``offset_fwd_right_px`` from the nadir lies inside the raw frame at ``R_nb``."""
-        return self.template.sample_map(self.R_cn(R_nb), base_yaw_rad, height_ratio / self.focal_px,
-                                        offset_fwd_right_px)[2]
+        """Whether a template at ``offset_fwd_right_px`` from the nadir lies inside the raw frame at ``q_nb``."""
+        return self.template.sample_map_h(self.R_hc(q_nb, base_yaw_rad), height_ratio / self.focal_px,
+                                          offset_fwd_right_px)[2]
 
     def view_offset_px(self, R_nb: NDArray[np.float64], base_yaw_rad: float) -> tuple[float, float] | None:
         """Ground point of the raw image's centre, relative to the nadir, in stabilised pixels (forward, right of
