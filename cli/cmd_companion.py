@@ -85,6 +85,7 @@ def run(args: argparse.Namespace) -> int:
     from gsoe.camera import CameraModel
     from nav.camera_sources import CameraSetupError, check_source_at_start
     from nav.companion import Companion, companion_config_from_raw
+    from nav.hygiene import pixel_in_image
     from nav.urls import LinkUrlError, parse_link_url
     from pipeline.config import load_gsoe_config
     from pipeline.navpipeline import pipeline_config_from_raw
@@ -127,8 +128,13 @@ def run(args: argparse.Namespace) -> int:
             key = load_key(args.signing_key)
         except (OSError, ValueError) as e:
             return setup_error(f"--signing-key {args.signing_key}: {getattr(e, 'strerror', None) or e}")
+    size_px = CameraModel.from_config(gsoe_cfg.camera).size_px
+    if args.target_px is not None and not pixel_in_image(args.target_px, size_px):
+        x, y = args.target_px
+        return setup_error(f"--target-px {x:g},{y:g}: outside the camera's {size_px[0]}x{size_px[1]} image "
+                           f"(0 <= x < {size_px[0]}, 0 <= y < {size_px[1]})")
     try:
-        check_source_at_start(args.camera, CameraModel.from_config(gsoe_cfg.camera).size_px, cfg.camera_fps)
+        check_source_at_start(args.camera, size_px, cfg.camera_fps)
     except CameraSetupError as e:
         return setup_error(e)
     asked = Path(args.log_dir or Path("logs") / time.strftime("companion-%Y%m%dT%H%M%SZ", time.gmtime()))

@@ -300,3 +300,16 @@ def test_replay_metrics_count_the_samples_the_pipeline_rejected(tmp_path):
     for kind, reason in zip(r["kind"], r["reason"], strict=True):
         want[f"{kind}: {reason}"] = want.get(f"{kind}: {reason}", 0) + 1
     assert want and m["samples_rejected"] == want
+
+
+@pytest.mark.parametrize("xy", ["1e9,-1e9", "800,10", "10,600", "-0.5,10", "nan,10"])
+def test_a_target_pixel_outside_the_image_is_a_setup_error(tmp_path, xy):
+    """``gsoe companion --target-px``: the pixel must lie in the 800x600 image, like a ground station's."""
+    from tests.test_companion_cli import TIMEOUT_S, gsoe
+
+    p = gsoe("companion", "--connect", "udpin://127.0.0.1:14999", "--camera", "/nonexistent/video.avi",
+             f"--target-px={xy}", "--log-dir", str(tmp_path / "log"), cwd=tmp_path)
+    _, err = p.communicate(timeout=TIMEOUT_S)
+    lines = [ln for ln in err.splitlines() if ln.startswith("gsoe companion:")]
+    assert p.returncode == 2 and len(lines) == 1 and "--target-px" in lines[0] and "outside" in lines[0], err
+    assert not (tmp_path / "log").exists()
