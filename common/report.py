@@ -1,5 +1,6 @@
 """What every flight report writes the same way (``gsoe sim``, ``gsoe replay``): ``metrics.json`` and the pieces of
-``report.html`` (a metrics table, captioned figures).  JSON and HTML only: each report draws its own figures."""
+``report.html`` (a metrics table, captioned figures).  Each report draws its own figures; they are written and
+listed here (:class:`SavedFigures`)."""
 
 from __future__ import annotations
 
@@ -14,6 +15,8 @@ import numpy as np
 
 METRICS_FILE = "metrics.json"
 REPORT_FILE = "report.html"
+#: resolution of every report figure (PNG)
+PLOT_DPI = 90
 # Shared style of the report pages.
 PAGE_CSS = "body{font-family:sans-serif;max-width:1000px;margin:auto}td{padding:2px 8px}img{max-width:100%}"
 
@@ -54,3 +57,27 @@ def figures_html(figs: Iterable[tuple[str, str]]) -> str:
     """``<figure>`` elements for ``(file name, caption)`` pairs (images beside the page)."""
     return "".join(f'<figure><img src="{n}" alt="{html.escape(c)}"><figcaption>{html.escape(c)}</figcaption>'
                    f"</figure>" for n, c in figs)
+
+
+class SavedFigures:
+    """The captioned PNG figures of one report, written into ``out_dir`` as they are drawn.
+
+    Makes matplotlib draw off-screen (Agg) and gives its pyplot as :attr:`plt`; :attr:`figs` lists
+    ``(file name, caption)`` for :func:`figures_html`."""
+
+    def __init__(self, out_dir: str | Path) -> None:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        self.plt = plt
+        self.out_dir = Path(out_dir)
+        self.figs: list[tuple[str, str]] = []
+
+    def save(self, fig: Any, name: str, caption: str) -> None:
+        """Lay ``fig`` out, write it as ``out_dir/name``, close it (pyplot keeps every open figure) and list it."""
+        fig.tight_layout()
+        fig.savefig(self.out_dir / name, dpi=PLOT_DPI)
+        self.plt.close(fig)
+        self.figs.append((name, caption))

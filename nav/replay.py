@@ -107,7 +107,6 @@ log = logging.getLogger(__name__)
 US_PER_S = 1_000_000
 OPTICAL_SOURCE_SYNTHETIC = "synthetic_from_gnss_velocity"
 OPTICAL_SOURCE_NONE = "none"
-PLOT_DPI = 90
 #: CSV streams (:mod:`common.logio`) a replay writes into its output folder.
 CSV_STREAMS = ("ekf", "aid_status", "gsoe", "gnss", "autopilot_wind", "samples_rejected", "ekf_events")
 
@@ -748,20 +747,12 @@ def write_outputs(out_dir: Path, result: ReplayResult, *, plots: bool = True) ->
 
 
 def _plots(out_dir: Path, result: ReplayResult) -> list[tuple[str, str]]:
-    import matplotlib
+    from common.report import SavedFigures
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    figures = SavedFigures(out_dir)
+    plt, save, figs = figures.plt, figures.save, figures.figs
     E, G, W = result.series["ekf"], result.series["gnss"], result.series["autopilot_wind"]
     t_off = result.metrics.get("gnss_off_at_s")
-    figs: list[tuple[str, str]] = []
-
-    def save(fig: Any, name: str, caption: str) -> None:
-        fig.tight_layout()
-        fig.savefig(out_dir / name, dpi=PLOT_DPI)
-        plt.close(fig)
-        figs.append((name, caption))
 
     def shade(ax: Any) -> None:
         if t_off is not None:

@@ -39,13 +39,12 @@ from numpy.typing import NDArray
 
 from common.angles import angle_diff
 from common.logio import read_log
-from common.report import METRICS_FILE, PAGE_CSS, REPORT_FILE, fmt_value, write_metrics
+from common.report import METRICS_FILE, PAGE_CSS, REPORT_FILE, SavedFigures, fmt_value, write_metrics
 
 US_PER_S = 1_000_000
 GNSS_GAP_S = 2.0  # no fused fix for longer than this: GNSS not in use (shaded)
 NEES_DOF = 6
 NEES_BOUNDS_95 = (1.2373442457, 14.4493753744)  # chi-square 6 dof, 2.5 % and 97.5 % quantiles
-PLOT_DPI = 90
 MAX_PLOT_POINTS = 20_000  # a series is thinned to at most this many points per line
 SERIES_FILE = "report_series.json"
 OUTAGE_COLOUR = "tab:red"
@@ -261,22 +260,12 @@ def _nees_from_sigmas(L: FlightLogs) -> tuple[NDArray[np.float64], NDArray[np.fl
 
 
 # ------------------------------------------------------------------------------------------------ figures
-class _Figures:
+class _Figures(SavedFigures):
+    """The figures of a flight's logs, into its folder."""
+
     def __init__(self, L: FlightLogs) -> None:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        self.plt = plt
+        super().__init__(L.folder)
         self.L = L
-        self.figs: list[tuple[str, str]] = []
-
-    def save(self, fig: Any, name: str, caption: str) -> None:
-        fig.tight_layout()
-        fig.savefig(self.L.folder / name, dpi=PLOT_DPI)
-        self.plt.close(fig)
-        self.figs.append((name, caption))
 
     def shade(self, *axes: Any) -> None:
         for ax in axes:

@@ -9,15 +9,12 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from common import metrics as M
-from common.report import PAGE_CSS, REPORT_FILE, figures_html, metrics_rows_html, write_metrics
+from common.report import PAGE_CSS, REPORT_FILE, SavedFigures, figures_html, metrics_rows_html, write_metrics
 from gsoe.equations import gnss_drift_rad
 
 if TYPE_CHECKING:
     from sim.run import _Series
     from sim.scenario import Scenario
-
-PLOT_DPI = 90
-
 
 def gnss_drift_series(G: dict[str, np.ndarray], T: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """The GNSS drift of a flight record (paper eq. 18-21): consecutive good fixes of ``G`` and the true heading of
@@ -38,22 +35,13 @@ def write_report(out_dir: Path, scn: Scenario, series: _Series, metrics: dict[st
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     write_metrics(out_dir, metrics)
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    figures = SavedFigures(out_dir)
+    plt, save, figs = figures.plt, figures.save, figures.figs
 
     T = series.arrays("truth")
     B = series.arrays("baseline")
     E = series.arrays("ekf")
     G = series.arrays("gnss")
-    figs: list[tuple[str, str]] = []
-
-    def save(fig: Any, name: str, caption: str) -> None:
-        fig.tight_layout()
-        fig.savefig(out_dir / name, dpi=PLOT_DPI)
-        plt.close(fig)
-        figs.append((name, caption))
 
     if T["t_s"].size < 2 or not (out_dir / "ekf.csv").is_file():
         _write_html(out_dir, scn, metrics, figs)
@@ -70,6 +58,8 @@ def write_report(out_dir: Path, scn: Scenario, series: _Series, metrics: dict[st
     # fig. 9: merged TM cycle
     cf = series.cycle_figure
     if cf is not None and cf["path"]:
+        from matplotlib.patches import Rectangle
+
         fig, ax = plt.subplots(figsize=(6, 4))
         ax.imshow(cf["base"], cmap="gray", vmin=0, vmax=255)
         u0, v0 = cf["ref_uv"]
@@ -77,8 +67,8 @@ def write_report(out_dir: Path, scn: Scenario, series: _Series, metrics: dict[st
         ax.plot(u0 + path[:, 0], v0 - path[:, 1], "r.-", ms=4)
         half = 9.5
         for dx, dy in path[:: max(1, len(path) // 4)]:
-            ax.add_patch(matplotlib.patches.Rectangle((u0 + dx - half, v0 - dy - half), 2 * half, 2 * half,
-                                                      fill=False, ec="y", lw=0.7))
+            ax.add_patch(Rectangle((u0 + dx - half, v0 - dy - half), 2 * half, 2 * half,
+                                   fill=False, ec="y", lw=0.7))
         ax.set_title(f"TM cycle {cf['cycle_id']} at t = {cf['t_s']:.1f} s (forward is up)")
         save(fig, "tm_cycle.png", "One template-matching cycle merged into one image (paper fig. 9)")
     # fig. 10: median drift per heading
