@@ -152,52 +152,49 @@ class FilterCore:
     def update(self, row: StatusRow, t_us: int, z: Sequence[float] | Vec, m: Linearised, gate_nis: float) -> bool:
         """Fuse the measurement ``z`` (model ``m`` at the current state) unless the numerics, the covariance-health
         check or the NIS gate say no; fills ``row`` and returns whether it was fused."""
-        P, r, h = self.P, m.r, m.H
-        innov: tuple[float, ...]
-        var: tuple[float, ...]
-        scalar = h is not None and h.ndim == 1
-        if scalar and h is not None:                      # scalar fast path: floats throughout
-            y = z[0] - m.z_hat[0]
-            PHt = P.dot(h)
-            hph = float(PHt.dot(h))
-            s = hph + r[0]
-            innov, var = (y,), (s,)
-            finite = math.isfinite(y) and math.isfinite(s)
-            negative = hph < -COV_RESET_REL_TOL * r[0]
-        else:
-            PHt, hph_diag, Sm, innov = self._prior_terms(z, m)
-            var = tuple(Sm[i][i] for i in range(len(innov)))
-            finite = math.isfinite(sum(innov) + sum(map(sum, Sm)))
-            negative = any(v < -COV_RESET_REL_TOL * ri for v, ri in zip(hph_diag, r, strict=True))
-        if not finite:
+        h = m.H
+        if h is not None and h.ndim == 1:
+            return self._update_scalar(row, t_us, z[0] - m.z_hat[0], h, m, gate_nis)
+        r = m.r
+        PHt, hph_diag, Sm, innov = self._prior_terms(z, m)
+        var = tuple(Sm[i][i] for i in range(len(innov)))
+        if not math.isfinite(sum(innov) + sum(map(sum, Sm))):
             row.set(t_us, rejected=True, reason=REASON_NUMERIC)
             return False
-        if negative:
+        if any(v < -COV_RESET_REL_TOL * ri for v, ri in zip(hph_diag, r, strict=True)):
             self._cov_reset(row, t_us, m.columns(), innov, var)
             return False
-        if scalar:
-            nis = y * y / s
-        else:
-            white = (_whiten_2x2 if m.idx is None and len(innov) == 2 else _whiten)(Sm, innov)
-            if white is None:
-                row.set(t_us, rejected=True, reason=REASON_NUMERIC, innovation=innov, innovation_var=var)
-                return False
-            CiT, w, nis = white
+        white = (_whiten_2x2 if m.idx is None and len(innov) == 2 else _whiten)(Sm, innov)
+        if white is None:
+            row.set(t_us, rejected=True, reason=REASON_NUMERIC, innovation=innov, innovation_var=var)
+            return False
+        CiT, w, nis = white
         ratio = nis / gate_nis
         if not ratio <= 1.0:
             row.set(t_us, rejected=True, reason=REASON_GATE, innovation=innov, innovation_var=var, test_ratio=ratio)
             return False
-        if scalar:                                        # u u' = P h' s^-1 h P; K_opt y = P h' y / s
-            u = (PHt * (1.0 / math.sqrt(s))).reshape(-1, 1)
-            A = u.dot(u.T)
-            dx = PHt * (y / s)
-            check = float(PHt.dot(PHt))
-        else:                                             # L = P H' C^-T: L L' = P H' S^-1 H P; K_opt y = L C^-1 y
-            L = PHt.dot(CiT)
-            A = L.dot(L.T)
-            dx = L.dot(np.array(w))
-            check = float(np.vdot(L, L))                  # trace(A), whose finiteness is all that is asked
-        return self._commit(row, t_us, dx, A, check, innov, var, ratio)
+        L = PHt.dot(CiT)                                  # L = P H' C^-T: L L' = P H' S^-1 H P; K_opt y = L C^-1 y
+        check = float(np.vdot(L, L))                      # trace(A), whose finiteness is all that is asked
+        return self._commit(row, t_us, L.dot(np.array(w)), L.dot(L.T), check, innov, var, ratio)
+
+    def _update_scalar(self, row: StatusRow, t_us: int, y: float, h: Vec, m: Linearised, gate_nis: float) -> bool:
+        """:meth:`update` of a scalar measurement (innovation ``y``, Jacobian row ``h``): floats throughout."""
+        r = m.r[0]
+        PHt = self.P.dot(h)
+        hph = float(PHt.dot(h))
+        s = hph + r
+        if not (math.isfinite(y) and math.isfinite(s)):
+            row.set(t_us, rejected=True, reason=REASON_NUMERIC)
+            return False
+        if hph < -COV_RESET_REL_TOL * r:
+            self._cov_reset(row, t_us, m.columns(), (y,), (s,))
+            return False
+        ratio = y * y / s / gate_nis
+        if not ratio <= 1.0:
+            row.set(t_us, rejected=True, reason=REASON_GATE, innovation=(y,), innovation_var=(s,), test_ratio=ratio)
+            return False
+        u = (PHt * (1.0 / math.sqrt(s))).reshape(-1, 1)  # u u' = P h' s^-1 h P; K_opt y = P h' y / s
+        return self._commit(row, t_us, PHt * (y / s), u.dot(u.T), float(PHt.dot(PHt)), (y,), (s,), ratio)
 
     def _prior_terms(self, z: Sequence[float] | Vec, m: Linearised) -> tuple[Mat, list[float], list[list[float]],
                                                                           tuple[float, ...]]:

@@ -31,6 +31,9 @@ ImuEntry = tuple[int, float, float, float, float, float, float, AttitudeSample]
 
 _ACC_LEN = 30           # floats of the accumulated increment (see ImuIntegrator.__init__)
 _SEG_LEN = 14           # floats of an open segment (see ImuIntegrator.__init__)
+#: (segment index, increment index) of the 3-vectors a fold rotates: sum f dt, sum f dt t_mid, sum (w x f) dt and
+#: sum (w x f) dt t_mid
+_FOLD_VECTORS = ((0, 0), (3, 3), (8, 24), (11, 27))
 
 
 class ImuIntegrator:
@@ -77,6 +80,10 @@ class ImuIntegrator:
         if self.att is None:
             self._att_out = att             # heading for the output until the horizon reaches an IMU sample
             self.version += 1
+
+    def R_nb_rows(self) -> tuple[float, ...] | None:
+        """:meth:`R_nb` as its nine entries, row by row (what the per-sample models read)."""
+        return self._Rl
 
     def R_nb(self) -> Mat | None:
         """Body-to-AHRS-NED rotation of the last processed IMU sample (``None`` before one)."""
@@ -156,24 +163,17 @@ class ImuIntegrator:
 
     def _fold(self) -> None:
         """Rotate the open segment's sums by its attitude into the prediction's increment."""
-        f0, f1, f2, n0, n1, n2, sdt, sdm, k0, k1, k2, j0, j1, j2 = self._seg
+        seg, a = self._seg, self._acc
         r00, r01, r02, r10, r11, r12, r20, r21, r22 = self._Rl   # type: ignore[misc]
-        a = self._acc
-        a[0] += r00 * f0 + r01 * f1 + r02 * f2
-        a[1] += r10 * f0 + r11 * f1 + r12 * f2
-        a[2] += r20 * f0 + r21 * f1 + r22 * f2
-        a[3] += r00 * n0 + r01 * n1 + r02 * n2
-        a[4] += r10 * n0 + r11 * n1 + r12 * n2
-        a[5] += r20 * n0 + r21 * n1 + r22 * n2
+        for i, o in _FOLD_VECTORS:                       # R (sum f dt), R (sum f dt t_mid), R (sum w x f dt), ...
+            v0, v1, v2 = seg[i], seg[i + 1], seg[i + 2]
+            a[o] += r00 * v0 + r01 * v1 + r02 * v2
+            a[o + 1] += r10 * v0 + r11 * v1 + r12 * v2
+            a[o + 2] += r20 * v0 + r21 * v1 + r22 * v2
+        sdt, sdm = seg[6], seg[7]
         for i, r in enumerate((r00, r01, r02, r10, r11, r12, r20, r21, r22)):
             a[6 + i] += r * sdt                           # sum R dt, row by row
             a[15 + i] += r * sdm                          # sum R dt t_mid
-        a[24] += r00 * k0 + r01 * k1 + r02 * k2
-        a[25] += r10 * k0 + r11 * k1 + r12 * k2
-        a[26] += r20 * k0 + r21 * k1 + r22 * k2
-        a[27] += r00 * j0 + r01 * j1 + r02 * j2
-        a[28] += r10 * j0 + r11 * j1 + r12 * j2
-        a[29] += r20 * j0 + r21 * j1 + r22 * j2
         self._seg = [0.0] * _SEG_LEN
         self._seg_open = False
 

@@ -8,10 +8,11 @@ heading error: ``R_nb = R_z(-yaw_bias) @ R_nb_ahrs`` (the state's ``yaw_bias`` i
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
-from fusion.aid.base import Mat, Vec
+from fusion.aid.base import Mat, ModelBase, Vec
 from fusion.state import S
 
 #: Air-relative speed (m/s) below which the airspeed and sideslip models are not evaluated (their Jacobians divide
@@ -23,29 +24,46 @@ VN, VE, VD = S.vel_ne.start, S.vel_ne.start + 1, S.vel_d.start
 WN, WE, WD = S.wind_ne.start, S.wind_ne.start + 1, S.wind_d.start
 YB, TS = S.yaw_bias.start, S.tas_scale.start
 
+#: The body-to-NED rotation as a 3 x 3 matrix or its nine entries row by row (what the IMU integrator keeps).
+Rotation = Mat | tuple[float, ...]
 
-def body_air_velocity(x: Vec, R_nb_ahrs: Mat) -> tuple[tuple[float, float, float], tuple[float, ...],
-                                                        tuple[float, float], tuple[float, float]]:
+
+def body_air_velocity(x: Vec | list[float], R_nb_ahrs: Rotation) -> tuple[
+        tuple[float, float, float], tuple[float, ...], tuple[float, float], tuple[float, float]]:
     """The body-frame air velocity ``vb = R_nb_ahrs^T [w, v_air_d]`` (m/s, FRD) with ``w = R_z(yaw_bias) v_air``
     (N, E; the AHRS attitude corrected by the heading error), ``R_nb_ahrs`` row by row (its columns are the body
-    axes in NED), ``w`` and ``(cos, sin)`` of ``yaw_bias``."""
-    xl = x.tolist()
+    axes in NED), ``w`` and ``(cos, sin)`` of ``yaw_bias``.  ``x``: the state, or its ``tolist()``."""
+    xl = x if isinstance(x, list) else x.tolist()
     an, ae, ad = xl[VN] - xl[WN], xl[VE] - xl[WE], xl[VD] - xl[WD]
     c, s = math.cos(xl[YB]), math.sin(xl[YB])
     wn, we = c * an - s * ae, s * an + c * ae                # R_z(yaw_bias) = R_z(-yaw_bias)^T
-    r = R_nb_ahrs.ravel().tolist()
+    r = R_nb_ahrs if isinstance(R_nb_ahrs, tuple) else tuple(R_nb_ahrs.ravel().tolist())
     r00, r01, r02, r10, r11, r12, r20, r21, r22 = r
     vb = (r00 * wn + r10 * we + r20 * ad, r01 * wn + r11 * we + r21 * ad, r02 * wn + r12 * we + r22 * ad)
-    return vb, tuple(r), (wn, we), (c, s)
+    return vb, r, (wn, we), (c, s)
 
 
-def air_angle_row(dw: tuple[float, float, float], w: tuple[float, float], cs: tuple[float, float]) -> Vec:
-    """Jacobian row (n,) of an angle of the body-frame air velocity, from its derivative ``dw`` w.r.t. ``[w,
-    v_air_d]`` (:func:`body_air_velocity`): through ``R_z(yaw_bias)`` to the air velocity ``v - wind`` and to
-    ``yaw_bias``."""
+def air_angle_row(gx: float, g2: float, col: int, r: tuple[float, ...], w: tuple[float, float],
+                  cs: tuple[float, float]) -> Vec:
+    """Jacobian row (n,) of an angle of the body-frame air velocity whose derivative w.r.t. it is ``gx`` along the
+    body x axis and ``g2`` along the body axis ``col`` (1: y, 2: z): ``d angle / d [w, v_air_d] = gx body_x + g2
+    body_col`` (columns of ``R_nb``, ``r`` row by row; ``w``, ``cs`` from :func:`body_air_velocity`), through
+    ``R_z(yaw_bias)`` to the air velocity ``v - wind`` and to ``yaw_bias``."""
+    dw0, dw1, dw2 = gx * r[0] + g2 * r[col], gx * r[3] + g2 * r[3 + col], gx * r[6] + g2 * r[6 + col]
     c, s = cs
-    dn, de = c * dw[0] + s * dw[1], -s * dw[0] + c * dw[1]
+    dn, de = c * dw0 + s * dw1, -s * dw0 + c * dw1
     h = np.zeros(S.dim)
-    h[VN], h[VE], h[VD], h[WN], h[WE], h[WD] = dn, de, dw[2], -dn, -de, -dw[2]
-    h[YB] = dw[0] * -w[1] + dw[1] * w[0]                   # d w / d yaw_bias = (-w_E, w_N, 0)
+    h[VN], h[VE], h[VD], h[WN], h[WE], h[WD] = dn, de, dw2, -dn, -de, -dw2
+    h[YB] = dw0 * -w[1] + dw1 * w[0]                       # d w / d yaw_bias = (-w_E, w_N, 0)
     return h
+
+
+@dataclass(frozen=True, slots=True)
+class AirAngle(ModelBase):
+    """What the air-data angle pseudo-measurements (sideslip, lift-model angle of attack) are built from: the AHRS
+    attitude ``R_nb_ahrs`` (:data:`Rotation`), the gain of the accelerometer reading in the measured angle
+    (rad per m/s^2; 0: none) and the noise variance (rad^2).  The sources build one model per sample."""
+
+    R_nb_ahrs: Rotation
+    accel_gain_rad_per_m_s2: float
+    var_rad2: float

@@ -10,15 +10,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Any
 
-from fusion.aid.air import MIN_AIR_SPEED_M_S, TS, air_angle_row, body_air_velocity
-from fusion.aid.airspeed import REASON_LOW_AIRSPEED
-from fusion.aid.base import AidSource, Mat, ModelBase, Vec
+from fusion.aid.air import MIN_AIR_SPEED_M_S, AirAngle, air_angle_row, body_air_velocity
+from fusion.aid.base import Vec
+from fusion.aid.sideslip import AirDataAid
 from fusion.config import EkfConfig
 from fusion.core import Linearised
 from fusion.state import S
-from fusion.status import REASON_NO_ATTITUDE
 
 REASON_AOA_RANGE = "lift-model angle of attack outside aoa_max_deg (lift curve not linear there)"
 
@@ -26,7 +25,7 @@ _BAZ, _AOF = S.accel_bias_b.start + 2, S.aoa_ofs.start
 
 
 @dataclass(frozen=True, slots=True)
-class LiftAngleOfAttack(ModelBase):
+class LiftAngleOfAttack(AirAngle):
     """Angle-of-attack pseudo-measurement from the lift (rad, ``atan(v_air_b_z / v_air_b_x)``), noise ``var_rad2``.
 
     The wing's lift is what the accelerometer's normal channel reads: ``-m f_z = q S (C_L0 + C_Lalpha alpha)``
@@ -38,21 +37,17 @@ class LiftAngleOfAttack(ModelBase):
     is :attr:`~fusion.config.EkfConfig.airframe.aoa_accel_gain_m` over ``V^2``, one model per sample).
     """
 
-    R_nb_ahrs: Mat
-    accel_gain_rad_per_m_s2: float
-    var_rad2: float
-
     def linearise(self, x: Vec) -> Linearised:
-        (vbx, _, vbz), (r00, _, r02, r10, _, r12, r20, _, r22), w, cs = body_air_velocity(x, self.R_nb_ahrs)
+        xl = x.tolist()
+        (vbx, _, vbz), r, w, cs = body_air_velocity(xl, self.R_nb_ahrs)
         vbx = max(vbx, MIN_AIR_SPEED_M_S)
         q = 1.0 / (vbx * vbx + vbz * vbz)
-        gx, gz = -vbz * q, vbx * q                           # d atan(vb_z / vb_x) / d(vb_x, vb_z)
-        # d alpha / d w: g_x * body_x + g_z * body_z (columns 0 and 2 of R_nb)
-        h = air_angle_row((gx * r00 + gz * r02, gx * r10 + gz * r12, gx * r20 + gz * r22), w, cs)
+        # d atan(vb_z / vb_x) / d(vb_x, vb_z), so d alpha / d w along body x and body z (columns 0 and 2 of R_nb)
+        h = air_angle_row(-vbz * q, vbx * q, 2, r, w, cs)
         k = self.accel_gain_rad_per_m_s2
         h[_BAZ] = -k
         h[_AOF] = 1.0
-        return Linearised((math.atan2(vbz, vbx) - k * float(x[_BAZ]) + float(x[_AOF]),), h, None, (self.var_rad2,))
+        return Linearised((math.atan2(vbz, vbx) - k * xl[_BAZ] + xl[_AOF],), h, None, (self.var_rad2,))
 
     @staticmethod
     def measured(cfg: EkfConfig, normal_force_m_s2: float, airspeed_m_s: float) -> float:
@@ -70,12 +65,11 @@ class LiftAngleOfAttack(ModelBase):
                 + (cfg.aoa.turb_noise_factor * cfg.wind.vertical_sigma_ratio)**2 * turb_var_m2_s2 / airspeed_m_s**2)
 
 
-class AoaAid(AidSource):
+class AoaAid(AirDataAid):
     """Fuses the lift-model angle of attack with each airspeed sample above ``airspeed.min_m_s`` (``aoa.enabled``; gate
     ``gates.aoa_nis``), within ``aoa.max_deg``."""
 
     name = "aoa"
-    listens: ClassVar[tuple[str, ...]] = ("airspeed",)
 
     def __init__(self, *args: Any) -> None:
         super().__init__(*args)
@@ -84,24 +78,19 @@ class AoaAid(AidSource):
         self._max_rad = math.radians(c.aoa.max_deg)
         # the configuration's derived numbers, once (this runs with every airspeed sample): those of
         # LiftAngleOfAttack.measured and LiftAngleOfAttack.variance
-        self._min_m_s, self._gate = c.airspeed.min_m_s, c.gates.aoa_nis
+        self._gate = c.gates.aoa_nis
         self._lift = (c.airframe.aoa_accel_gain_m, c.airframe.aoa_zero_lift_rad)
         self._var_terms = (c.aoa.sigma_rad**2, (c.aoa.turb_noise_factor * c.wind.vertical_sigma_ratio)**2)
 
     def control(self, t_us: int, tas: float) -> bool:
-        if tas < self._min_m_s:
-            self.row.set(t_us, reason=REASON_LOW_AIRSPEED)
+        if tas >= self._min_m_s and not self._gain_m:
             return True
-        if not self._gain_m:
+        air = self.air_sample(t_us, tas, need_normal=True)
+        if air is None:
             return True
-        imu = self.ctx.imu
-        R_nb = imu.R_nb()
-        if R_nb is None or math.isnan(imu.nrm_f):
-            self.row.set(t_us, reason=REASON_NO_ATTITUDE)
-            return True
-        v_air = max(tas / (1.0 + float(self.core.x[TS])), self._min_m_s)
+        R_nb, v_air = air
         gain, zero_lift = self._lift
-        z_alpha = -gain * imu.nrm_f / (v_air * v_air) - zero_lift
+        z_alpha = -gain * self.ctx.imu.nrm_f / (v_air * v_air) - zero_lift
         if abs(z_alpha) > self._max_rad:                  # stall, or a pull beyond the linear lift curve
             self.row.set(t_us, reason=REASON_AOA_RANGE)
             return True

@@ -11,9 +11,9 @@ import math
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
-from fusion.aid.air import MIN_AIR_SPEED_M_S, TS, air_angle_row, body_air_velocity
+from fusion.aid.air import MIN_AIR_SPEED_M_S, TS, AirAngle, air_angle_row, body_air_velocity
 from fusion.aid.airspeed import REASON_LOW_AIRSPEED
-from fusion.aid.base import AidSource, Mat, ModelBase, Vec
+from fusion.aid.base import AidSource, Vec
 from fusion.config import EkfConfig
 from fusion.core import Linearised
 from fusion.state import S
@@ -23,7 +23,7 @@ _BAY, _SFO = S.accel_bias_b.start + 1, S.side_force_ofs.start
 
 
 @dataclass(frozen=True, slots=True)
-class SyntheticSideslip(ModelBase):
+class SyntheticSideslip(AirAngle):
     """Sideslip pseudo-measurement (rad, small-angle ``v_air_b_y / v_air_b_x``) with noise variance ``var_rad2``.
 
     The air-relative velocity is rotated into the body frame with the AHRS attitude ``R_nb_ahrs`` corrected by the
@@ -37,20 +37,16 @@ class SyntheticSideslip(ModelBase):
     airspeed, so the source builds one model per sample.
     """
 
-    R_nb_ahrs: Mat
-    accel_gain_rad_per_m_s2: float
-    var_rad2: float
-
     def linearise(self, x: Vec) -> Linearised:
-        (vbx, vby, _), (r00, r01, _, r10, r11, _, r20, r21, _), w, cs = body_air_velocity(x, self.R_nb_ahrs)
+        xl = x.tolist()
+        (vbx, vby, _), r, w, cs = body_air_velocity(xl, self.R_nb_ahrs)
         vx = max(vbx, MIN_AIR_SPEED_M_S)
-        gx, gy = -vby / (vx * vx), 1.0 / vx                  # d(vb_y / vb_x) / d(vb_x, vb_y)
-        # d beta / d w: g_x * body_x + g_y * body_y (columns 0 and 1 of R_nb)
-        h = air_angle_row((gx * r00 + gy * r01, gx * r10 + gy * r11, gx * r20 + gy * r21), w, cs)
+        # d(vb_y / vb_x) / d(vb_x, vb_y), so d beta / d w along body x and body y (columns 0 and 1 of R_nb)
+        h = air_angle_row(-vby / (vx * vx), 1.0 / vx, 1, r, w, cs)
         k = self.accel_gain_rad_per_m_s2
         if k:
             h[_BAY] = h[_SFO] = k
-            return Linearised((vby / vx + k * (float(x[_BAY]) + float(x[_SFO])),), h, None, (self.var_rad2,))
+            return Linearised((vby / vx + k * (xl[_BAY] + xl[_SFO]),), h, None, (self.var_rad2,))
         return Linearised((vby / vx,), h, None, (self.var_rad2,))
 
     @staticmethod
@@ -61,37 +57,56 @@ class SyntheticSideslip(ModelBase):
         return cfg.sideslip.sigma_rad**2 + cfg.sideslip.turb_noise_factor**2 * turb_var_m2_s2 / airspeed_m_s**2
 
 
-class SideslipAid(AidSource):
+class AirDataAid(AidSource):
+    """What the aid sources riding on each airspeed sample share (the sideslip here, the angle of attack): the
+    airspeed and attitude conditions and the airspeed corrected by the scale state."""
+
+    listens: ClassVar[tuple[str, ...]] = ("airspeed",)
+
+    def __init__(self, *args: Any) -> None:
+        super().__init__(*args)
+        self._min_m_s = self.cfg.airspeed.min_m_s
+
+    def air_sample(self, t_us: int, tas: float, need_normal: bool = False) -> tuple[tuple[float, ...], float] | None:
+        """The AHRS rotation (row by row) and the corrected airspeed ``tas / (1 + tas_scale)`` (at least
+        ``airspeed.min_m_s``) for a sample of ``tas``; ``None``, with the reason in the status record, when the
+        airspeed is below the minimum or there is no attitude (``need_normal``: or no normal specific force) yet."""
+        if tas < self._min_m_s:
+            self.row.set(t_us, reason=REASON_LOW_AIRSPEED)
+            return None
+        imu = self.ctx.imu
+        R_nb = imu.R_nb_rows()
+        if R_nb is None or (need_normal and math.isnan(imu.nrm_f)):
+            self.row.set(t_us, reason=REASON_NO_ATTITUDE)
+            return None
+        return R_nb, max(tas / (1.0 + self.core.x.item(TS)), self._min_m_s)
+
+
+class SideslipAid(AirDataAid):
     """Fuses the sideslip with each airspeed sample above ``airspeed.min_m_s`` (``sideslip.enabled``; gate
     ``gates.sideslip_nis``), at the AHRS attitude of the last IMU sample at or before the stamp."""
 
     name = "sideslip"
-    listens: ClassVar[tuple[str, ...]] = ("airspeed",)
 
     def __init__(self, *args: Any) -> None:
         super().__init__(*args)
         c = self.cfg
         # the configuration's derived numbers, once (this runs with every airspeed sample)
-        self._min_m_s, self._gain_m, self._gate = c.airspeed.min_m_s, c.airframe.sideslip_accel_gain_m, \
+        self._enabled, self._gain_m, self._gate = c.sideslip.enabled, c.airframe.sideslip_accel_gain_m, \
             c.gates.sideslip_nis
         self._var_terms = (c.sideslip.sigma_rad**2, c.sideslip.turb_noise_factor**2)   # SyntheticSideslip.variance
 
     def control(self, t_us: int, tas: float) -> bool:
-        if tas < self._min_m_s:
-            self.row.set(t_us, reason=REASON_LOW_AIRSPEED)
+        if tas >= self._min_m_s and not self._enabled:
             return True
-        if not self.cfg.sideslip.enabled:
+        air = self.air_sample(t_us, tas)
+        if air is None:
             return True
-        imu = self.ctx.imu
-        R_nb = imu.R_nb()
-        if R_nb is None:
-            self.row.set(t_us, reason=REASON_NO_ATTITUDE)
-            return True
+        R_nb, v_air = air
         # the side-force sideslip (measured value) from the lateral specific force and the corrected airspeed;
         # 0 with the model off (zero sideslip)
         k_beta, z_beta = 0.0, 0.0
-        v_air = max(tas / (1.0 + float(self.core.x[TS])), self._min_m_s)
-        lat_f = imu.lat_f
+        lat_f = self.ctx.imu.lat_f
         if self._gain_m and not math.isnan(lat_f):
             k_beta = self._gain_m / (v_air * v_air)
             z_beta = k_beta * lat_f
