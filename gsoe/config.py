@@ -14,6 +14,17 @@ from common.config import In, Validated, in_range, require
 # --------------------------------------------------------------------------------------------------------------
 # Optical estimator configuration
 
+# Ranges that several fields share (one meaning, one declaration)
+_ImageSidePx = Annotated[int, In(16, 16384)]
+_FocalPx = Annotated[float, In(1.0, 1e5)]
+_FovDeg = Annotated[float, In(1.0, 360.0)]
+_PatchSidePx = Annotated[int, In(9, 2001, odd=True)]
+_TiltLimitDeg = Annotated[float, In(0.0, 89.0)]
+# a margin around a position on the base image or the SSD surface
+_MarginPx = Annotated[int, In(0, 50)]
+# a difference of two per-frame template steps
+_StepChangePx = Annotated[float, In(0.0, 100.0)]
+
 
 @dataclass(frozen=True)
 class CameraConfig(Validated):
@@ -27,15 +38,15 @@ class CameraConfig(Validated):
     """
 
     model: Literal["fisheye", "pinhole"]
-    width_px: Annotated[int, In(16, 16384)]
-    height_px: Annotated[int, In(16, 16384)]
-    fx_px: Annotated[float, In(1.0, 1e5)]
-    fy_px: Annotated[float, In(1.0, 1e5)]
+    width_px: _ImageSidePx
+    height_px: _ImageSidePx
+    fx_px: _FocalPx
+    fy_px: _FocalPx
     cx_px: float
     cy_px: float
     dist: Annotated[tuple[float, ...], In(-10.0, 10.0)]
-    hfov_deg: Annotated[float, In(1.0, 360.0)]
-    vfov_deg: Annotated[float, In(1.0, 360.0)]
+    hfov_deg: _FovDeg
+    vfov_deg: _FovDeg
     mount_rpy_deg: Annotated[tuple[float, float, float], In(-180.0, 180.0)] = (0.0, 0.0, 0.0)
     rms_px: float | None = None
 
@@ -68,14 +79,14 @@ class StabConfig(Validated):
     migration.
     """
 
-    base_cross_px: Annotated[int, In(9, 2001, odd=True)] = 121
-    base_along_px: Annotated[int, In(9, 2001, odd=True)] = 73
+    base_cross_px: _PatchSidePx = 121
+    base_along_px: _PatchSidePx = 73
     template_px: Annotated[int, In(3, 201, odd=True)] = 19
     template_start: Literal["centre", "trailing"] = "centre"
     focal_px: Annotated[float, In(0.0, 1e5)] = 0.0
     map_grid_px: Annotated[int, In(1, 256)] = 8
-    roll_limit_deg: Annotated[float, In(0.0, 89.0)] = 45.0
-    pitch_limit_deg: Annotated[float, In(0.0, 89.0)] = 20.0
+    roll_limit_deg: _TiltLimitDeg = 45.0
+    pitch_limit_deg: _TiltLimitDeg = 20.0
     use_gyro: bool = True
     gyro_bias_tau_s: Annotated[float, In(0.0, 3600.0)] = 20.0
     scale_template_to_base: bool = True
@@ -106,7 +117,7 @@ class MatchConfig(Validated):
     subpixel: bool = True
     psr_min: Annotated[float, In(0.0, 1e3)] = 3.0
     texture_std_min: Annotated[float, In(0.0, 255.0)] = 4.0
-    sidelobe_exclude_px: Annotated[int, In(0, 50)] = 2
+    sidelobe_exclude_px: _MarginPx = 2
     window_margin_px: Annotated[int, In(1, 100)] = 4
 
 
@@ -135,11 +146,11 @@ class CycleConfig(Validated):
     """
 
     rate_hz: Annotated[float, In(1.0, 240.0)] = 30.0
-    edge_margin_px: Annotated[int, In(0, 50)] = 1
+    edge_margin_px: _MarginPx = 1
     max_cycle_s: Annotated[float, In(0.05, 60.0)] = 3.0
     data_filter: bool = True
-    data_filter_zeta_px: Annotated[float, In(0.0, 100.0)] = 4.0
-    step_gate_px: Annotated[float, In(0.0, 100.0)] = 2.0
+    data_filter_zeta_px: _StepChangePx = 4.0
+    step_gate_px: _StepChangePx = 2.0
     featureless_retry_s: Annotated[float, In(0.0, 10.0)] = 0.1
     step_prediction: Literal["per_frame", "per_second"] = "per_frame"
 
