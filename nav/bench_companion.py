@@ -35,13 +35,12 @@ import tempfile
 import threading
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from common.procs import STOP_GRACE_S, free_port, stop_process
+from common.procs import STOP_GRACE_S, SilFlight, free_port, sil_results, stop_process
 
 ROOT = Path(__file__).resolve().parent.parent
 PY = sys.executable
@@ -49,20 +48,6 @@ VEHICLE_START_S = 1.0      # head start of the vehicle process before the compan
 TRACKING_SETTINGS = ('companion.tracking.source="mavlink"', 'companion.tracking.mount="forward"')
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class SilFlight:
-    """One SIL flight's results: the vehicle's JSON summary, the companion's final status, their folders."""
-
-    vehicle: dict[str, Any]
-    companion: dict[str, Any]
-    companion_rc: int
-    out_dir: Path
-
-    @property
-    def log_dir(self) -> Path:
-        return self.out_dir / "log"
 
 
 def sil_flight(out_dir: Path, *, duration_s: float, vehicle_args: Sequence[str] = (),
@@ -104,10 +89,7 @@ def sil_flight(out_dir: Path, *, duration_s: float, vehicle_args: Sequence[str] 
             if comp is not None:
                 stop_process(comp)
             stop_process(veh)
-    vehicle = json.loads((out_dir / "vehicle.json").read_text()) if (out_dir / "vehicle.json").exists() else {}
-    text = (out_dir / "companion.out").read_text()
-    companion = json.loads(text) if text.strip() else {}
-    return SilFlight(vehicle, companion, comp.returncode if comp is not None else -1, out_dir)
+    return SilFlight(*sil_results(out_dir, comp), out_dir)
 
 
 def guidance_vehicle_args(start_m: float, outage_range_m: float, wind_e_m_s: float = 8.0,

@@ -62,7 +62,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from common.logio import claim_run_folder
-from common.procs import free_port, stop_process
+from common.procs import SilFlight, free_port, sil_results, stop_process
 
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402  (MAVLINK20 must be set before import)
@@ -287,20 +287,12 @@ class HostileStation:
 
 
 # ------------------------------------------------------------------------------------------------ flights
-@dataclass
-class FuzzFlight:
-    """One fuzz flight's results."""
+@dataclass(frozen=True)
+class FuzzFlight(SilFlight):
+    """One fuzz flight's results: the SIL flight's, its bursts and what the hostile station recorded."""
 
     bursts: list[Burst]
     station: StationRecord
-    vehicle: dict[str, Any]
-    companion: dict[str, Any]
-    companion_rc: int
-    out_dir: Path
-
-    @property
-    def log_dir(self) -> Path:
-        return self.out_dir / "log"
 
     def recovery_s(self) -> list[float | None]:
         """Per burst: seconds after its end until ``GSOE_VALID`` last left 0 (before the next burst or the end)."""
@@ -382,15 +374,11 @@ def fuzz_flight(out_dir: Path, bursts: Sequence[Burst], *, duration_s: float, ve
                 stop_process(p)
             station.stop()
             thread.join(timeout=5.0)
-    vehicle = json.loads((out_dir / "vehicle.json").read_text()) if (out_dir / "vehicle.json").exists() else {}
-    text = (out_dir / "companion.out").read_text()
-    companion = json.loads(text) if text.strip() else {}
     (out_dir / "station.json").write_text(json.dumps({"sent": station.rec.sent, "valid": station.rec.valid,
                                                       "velocity": station.rec.velocity,
                                                       "bursts": [b.__dict__ for b in bursts],
                                                       "errors": list(station.errors)}))
-    return FuzzFlight(list(bursts), station.rec, vehicle, companion, comp.returncode if comp is not None else -1,
-                      out_dir)
+    return FuzzFlight(*sil_results(out_dir, comp), out_dir, list(bursts), station.rec)
 
 
 def schedule(seeds: Sequence[int], n_packets: int, *, first_s: float = 12.0, burst_s: float = 5.0,
