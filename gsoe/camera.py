@@ -104,15 +104,16 @@ class CameraModel:
                     return None
         elif not (rays_c[:, 2] > c * np.sqrt(np.einsum("ij,ij->i", rays_c, rays_c))).all():
             return None
-        obj = rays_c.reshape(-1, 1, 3)
         if self.config.model == "fisheye":
-            img, _ = cv2.fisheye.projectPoints(obj, _ZERO3, _ZERO3, self.K, self.D)
+            # the lens applied to the normalised coordinates: projectPoints' pixels bit for bit, without its pose
+            # and its Jacobians (half the cost)
+            img = cv2.fisheye.distortPoints((rays_c[:, :2] / rays_c[:, 2:]).reshape(-1, 1, 2), self.K, self.D)
         else:
-            img, _ = cv2.projectPoints(obj, _ZERO3, _ZERO3, self.K, self.D)
+            img, _ = cv2.projectPoints(rays_c.reshape(-1, 1, 3), _ZERO3, _ZERO3, self.K, self.D)
         px = cast("NDArray[np.float64]", img.reshape(-1, 2))    # (a string: no runtime subscript per call)
-        (x0, y0), (x1, y1) = np.minimum.reduce(px).tolist(), np.maximum.reduce(px).tolist()
+        xs, ys = px.T.tolist()     # (Python's min and max of 16 floats: a third of NumPy's reductions' cost)
         w, h = self._frame_limits
-        if x0 < -0.5 or y0 < -0.5 or x1 > w or y1 > h:
+        if min(xs) < -0.5 or min(ys) < -0.5 or max(xs) > w or max(ys) > h:
             return None
         return px
 
