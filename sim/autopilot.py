@@ -67,6 +67,9 @@ Gain = Annotated[float, In(0.0, 100.0)]
 _HEIGHT_M = In(1.0, 10000.0)
 _AIRSPEED_M_S = In(5.0, 60.0)
 _RateHz = Annotated[float, In(1.0, 10000.0)]
+_RateLimitRadS = Annotated[float, In(0.05, 10.0)]
+_VerticalSpeedMS = Annotated[float, In(0.1, 20.0)]
+_Throttle = Annotated[float, In(0.0, 1.0)]
 
 
 @dataclass(frozen=True)
@@ -85,8 +88,8 @@ class AutopilotGains(Validated):
 
     roll_limit_rad: Annotated[float, In(math.radians(5.0), math.radians(75.0))] = math.radians(45.0)
     pitch_limit_rad: Annotated[float, In(math.radians(2.0), math.radians(45.0))] = math.radians(20.0)
-    roll_rate_limit_rad_s: Annotated[float, In(0.05, 10.0)] = math.radians(90.0)
-    pitch_rate_limit_rad_s: Annotated[float, In(0.05, 10.0)] = math.radians(60.0)
+    roll_rate_limit_rad_s: _RateLimitRadS = math.radians(90.0)
+    pitch_rate_limit_rad_s: _RateLimitRadS = math.radians(60.0)
     # roll: attitude -> rate -> aileron
     roll_kp: Gain = 3.5
     roll_rate_kp: Gain = 0.15
@@ -107,8 +110,8 @@ class AutopilotGains(Validated):
     gain_scale_max: Annotated[float, In(1.0, 100.0)] = 3.0
     # height -> climb rate -> pitch
     height_kp: Gain = 0.3
-    climb_rate_max_m_s: Annotated[float, In(0.1, 20.0)] = 3.0
-    sink_rate_max_m_s: Annotated[float, In(0.1, 20.0)] = 2.5
+    climb_rate_max_m_s: _VerticalSpeedMS = 3.0
+    sink_rate_max_m_s: _VerticalSpeedMS = 2.5
     climb_kp: Gain = 0.06
     climb_ki: Gain = 0.03
     pitch_turn_ff_rad: Gain = 0.06
@@ -116,8 +119,8 @@ class AutopilotGains(Validated):
     airspeed_kp: Gain = 0.12
     airspeed_ki: Gain = 0.05
     throttle_climb_ff: Gain = 0.08
-    throttle_min: Annotated[float, In(0.0, 1.0)] = 0.0
-    throttle_max: Annotated[float, In(0.0, 1.0)] = 1.0
+    throttle_min: _Throttle = 0.0
+    throttle_max: _Throttle = 1.0
     # lateral guidance
     l1_period_s: Annotated[float, In(1.0, 100.0)] = 11.0
     l1_damping: Annotated[float, In(0.1, 2.0)] = 0.75
