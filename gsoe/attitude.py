@@ -115,6 +115,9 @@ class AttitudeBuffer:
         self._latency_s = 0.0 if latency_s is None else latency_s
         self._c_mean: Quat | None = None  # the complementary filter's q_nb * q_g^-1
         self._c_last_us: int | None = None
+        # the integrated gyro at the last start time relative_rotation was asked for (a cycle's base time, asked
+        # every frame): final once the gyro track has samples on both sides of it (they are only appended later)
+        self._g0_memo: tuple[int, Quat] | None = None
 
     # ---------------------------------------------------------------------------------------------- input
     def push_attitude(self, s: AttitudeSample) -> bool:
@@ -263,7 +266,15 @@ class AttitudeBuffer:
         samples.
         """
         if use_gyro:
-            g0, g1 = self._gyro.at(t0_us), self._gyro.at(t1_us)
+            ts = self._gyro.t
+            memo = self._g0_memo
+            if memo is not None and memo[0] == t0_us and ts and ts[0] <= t0_us:
+                g0: Quat | None = memo[1]
+            else:
+                g0 = self._gyro.at(t0_us)
+                if g0 is not None and t0_us < ts[-1]:     # interpolated: its neighbours are final
+                    self._g0_memo = (t0_us, g0)
+            g1 = self._gyro.at(t1_us)
             if g0 is not None and g1 is not None:
                 return quat.mul(quat.conj(g0), g1)
         a0, a1 = self._att.at(t0_us), self._att.at(t1_us)

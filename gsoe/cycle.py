@@ -214,8 +214,11 @@ class GsoeEstimator:
         if not self.cfg.stab.scale_template_to_base:
             ratio = 1.0
         yaw_now = quat.yaw(q_nb)
-        exp_last = self._expected_step(c.last_step_xy, c.last_step_dt_us, t_us - c.last_t_us)
-        exp_carried = self._expected_step(c.carried_step_xy, c.carried_step_dt_us, t_us - c.last_t_us)
+        if self._per_second:
+            exp_last = self._expected_step(c.last_step_xy, c.last_step_dt_us, t_us - c.last_t_us)
+            exp_carried = self._expected_step(c.carried_step_xy, c.carried_step_dt_us, t_us - c.last_t_us)
+        else:                                   # "per_frame": the steps themselves
+            exp_last, exp_carried = c.last_step_xy, c.carried_step_xy
         # the template's expected position (nadir terms); "view" mode also trusts a step carried from the last cycle,
         # else the last rate measured
         exp_pred = exp_last if exp_last is not None or not self._view else (

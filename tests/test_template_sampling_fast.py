@@ -1,6 +1,7 @@
-"""The template's per-frame sampling shortcuts (issue 24) against the general paths they replace: the camera-to-
-heading rotation from quaternions against scipy's matrices, and the lens-field test on the grid's four corner rays
-against :meth:`CameraModel.project` of every ray."""
+"""The optical pipeline's per-frame shortcuts (issue 24) against the general paths they replace: the camera-to-
+heading rotation from quaternions against scipy's matrices, the lens-field test on the template grid's four corner
+rays against :meth:`CameraModel.project` of every ray, and the remembered gyro value at a cycle's base time against
+a fresh lookup."""
 
 from __future__ import annotations
 
@@ -61,3 +62,27 @@ def test_corner_field_test_decides_as_every_ray(camera):
                 np.testing.assert_allclose(got, px_all, atol=1e-9)
             outcomes[got is not None] += 1
     assert min(outcomes.values()) > 50, outcomes
+
+
+def test_relative_rotation_from_a_remembered_start_is_the_fresh_one():
+    """A cycle asks for the rotation since its base time every frame; the remembered gyro value at that time gives
+    bit for bit what a buffer asked once gives, as samples arrive and the oldest are dropped (horizon 0.5 s)."""
+    from common.samples import ImuSample
+    from gsoe.attitude import AttitudeBuffer
+
+    rng = np.random.default_rng(3)
+    gyro = rng.normal(0.0, 0.3, (900, 3))
+    asked, fresh_buf = AttitudeBuffer(horizon_s=0.5), AttitudeBuffer(horizon_s=0.5)
+    t0_us = 1_005_000                                   # between two samples (300 Hz)
+    for k, w in enumerate(gyro):
+        s = ImuSample(k * 3333, w, np.zeros(3))
+        asked.push_imu(s)
+        fresh_buf.push_imu(s)
+        t1_us = k * 3333
+        if t1_us > t0_us:
+            got = asked.relative_rotation(t0_us, t1_us)
+            fresh = AttitudeBuffer(horizon_s=0.5)
+            fresh._gyro, fresh._att = fresh_buf._gyro, fresh_buf._att
+            assert got == fresh.relative_rotation(t0_us, t1_us)
+    # t0 has left the horizon: no rotation from the memory either
+    assert asked.relative_rotation(t0_us, 899 * 3333) is None
