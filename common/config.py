@@ -18,7 +18,8 @@ overrides ``__post_init__``, calls ``super().__post_init__()`` first and states 
 The annotations are resolved in the module's namespace (as :func:`build` resolves them), so config classes and
 their aliases live at module level.
 
-Degrees appear here (``*_deg``) because configuration is an edge; code reads the ``*_rad`` properties.
+Degrees appear here (``*_deg``) because configuration is an edge; code reads the ``*_rad`` attributes, declared
+with :class:`Radians` (``noise_rad = Radians("noise_deg")``).
 """
 
 from __future__ import annotations
@@ -124,6 +125,35 @@ def check_fields(obj: Any) -> None:
     """Check every field of dataclass instance ``obj`` against its declared :class:`In` range, in field order."""
     for name, rng, integer in field_ranges(type(obj)):
         rng.check(getattr(obj, name), name, integer=integer)
+
+
+class Radians:
+    """A read-only attribute of a config class: one of its degrees fields in radians (configuration speaks degrees,
+    code reads radians)::
+
+        noise_deg: Annotated[float, In(0.0, 10.0)] = 0.1
+        noise_rad = Radians("noise_deg")
+
+    Not a dataclass field (no annotation); a name that is not a field of the class is refused when the class is
+    made."""
+
+    __slots__ = ("deg_field",)
+
+    def __init__(self, deg_field: str) -> None:
+        self.deg_field = deg_field
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        if self.deg_field not in getattr(owner, "__annotations__", {}):
+            raise TypeError(f"{owner.__name__}.{name}: Radians of {self.deg_field!r}, not a field of the class")
+
+    @typing.overload
+    def __get__(self, obj: None, owner: type | None = None) -> Radians: ...
+
+    @typing.overload
+    def __get__(self, obj: object, owner: type | None = None) -> float: ...
+
+    def __get__(self, obj: object | None, owner: type | None = None) -> Radians | float:
+        return self if obj is None else math.radians(getattr(obj, self.deg_field))
 
 
 class Validated:

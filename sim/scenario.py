@@ -37,7 +37,7 @@ from typing import Annotated, Any, Literal, get_args
 import numpy as np
 from numpy.typing import NDArray
 
-from common.config import ConfigError, In, Validated, build, require, to_dict
+from common.config import ConfigError, In, Radians, Validated, build, require, to_dict
 from common.configfile import CONFIG_DIR, read_toml
 from gsoe.config import CameraConfig, CycleConfig, GsoeConfig, IntegrityConfig, MatchConfig, StabConfig
 
@@ -101,9 +101,7 @@ class StartConfig(Validated):
     airspeed_m_s: _AirspeedMS = 20.0
     yaw_deg: Annotated[float, In(-360.0, 360.0)] = 0.0
 
-    @property
-    def yaw_rad(self) -> float:
-        return math.radians(self.yaw_deg)
+    yaw_rad = Radians("yaw_deg")
 
 
 @dataclass(frozen=True)
@@ -181,9 +179,7 @@ class WindConfig(Validated):
         super().__post_init__()
         require(self.roughness_m < self.ref_height_m, "roughness_m", "must be below ref_height_m")
 
-    @property
-    def from_rad(self) -> float:
-        return math.radians(self.from_deg)
+    from_rad = Radians("from_deg")
 
     @property
     def steady_ned_m_s(self) -> NDArray[np.float64]:
@@ -211,17 +207,9 @@ class ImuConfig(Validated):
     accel_bias_walk_m_s2_sqrt_s: Annotated[float, In(0.0, 0.1)] = 5e-4
     accel_scale_std: Annotated[float, In(0.0, 0.1)] = 0.002
 
-    @property
-    def gyro_noise_density_rad_s_sqrt_hz(self) -> float:
-        return math.radians(self.gyro_noise_density_deg_s_sqrt_hz)
-
-    @property
-    def gyro_bias_std_rad_s(self) -> float:
-        return math.radians(self.gyro_bias_std_deg_s)
-
-    @property
-    def gyro_bias_walk_rad_s_sqrt_s(self) -> float:
-        return math.radians(self.gyro_bias_walk_deg_s_sqrt_s)
+    gyro_noise_density_rad_s_sqrt_hz = Radians("gyro_noise_density_deg_s_sqrt_hz")
+    gyro_bias_std_rad_s = Radians("gyro_bias_std_deg_s")
+    gyro_bias_walk_rad_s_sqrt_s = Radians("gyro_bias_walk_deg_s_sqrt_s")
 
 
 @dataclass(frozen=True)
@@ -239,17 +227,9 @@ class AhrsConfig(Validated):
     yaw_bias_std_deg: Annotated[float, In(0.0, 30.0)] = 1.0
     latency_s: Annotated[float, In(0.0, 1.0)] = 0.01
 
-    @property
-    def noise_rad(self) -> float:
-        return math.radians(self.noise_deg)
-
-    @property
-    def bias_std_rad(self) -> float:
-        return math.radians(self.bias_std_deg)
-
-    @property
-    def yaw_bias_std_rad(self) -> float:
-        return math.radians(self.yaw_bias_std_deg)
+    noise_rad = Radians("noise_deg")
+    bias_std_rad = Radians("bias_std_deg")
+    yaw_bias_std_rad = Radians("yaw_bias_std_deg")
 
 
 @dataclass(frozen=True)
