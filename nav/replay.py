@@ -49,10 +49,14 @@ Configuration profile ``telemetry_replay`` (``[ekf.profiles.telemetry_replay]`` 
 table overrides the EKF's on top)
     Telemetry carries 10 Hz IMU and 2-4 Hz attitude, and the autopilot's WIND is a steady-wind estimate: the profile
     raises the acceleration noise, makes the wind one random walk as ArduPilot's, weights the airspeed as gusty, turns
-    the lift-model angle of attack off, and takes the log's attitude as given (docs/ekf-tuning.md).
+    the lift-model angle of attack off, and takes the log's attitude as given (docs/ekf-tuning.md); like ArduPilot's
+    EKF it takes the log's calibrated airspeed as exact (no scale learnt), fuses the zero-sideslip pseudo-measurement
+    (the log's airframe is not the simulator's) and GNSS position as white noise (docs/real-data.md; what a log says
+    about these: :mod:`nav.replay_checks`).
     GNSS samples are moved back by ``replay.gnss_delay_s`` (0.2 s, ArduPilot's default GPS lag): logged fixes carry
     the time they reached the autopilot; on the ALFA log the wind triangle ``v_gnss - tas * heading`` varies least
-    with the GNSS velocity taken 0.15-0.2 s earlier than its stamp.
+    with the GNSS velocity taken 0.15-0.2 s earlier than its stamp, and the autopilot's own position lies on the
+    fixes 0.24 s earlier.
 
 Wind against the autopilot
     The EKF's wind (velocity of the air, N/E) is interpolated to the time of every autopilot wind sample (MAVLink
