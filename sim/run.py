@@ -287,7 +287,8 @@ def run_flight(scn: Scenario, *, seed: int, duration_s: float | None = None, out
         sensor_errors=sensors.errors.to_dict(),
         pipeline={"ekf_started": pipe.status.ekf_started, "frames_late": pipe.status.frames_late,
                   "estimator_errors": pipe.status.estimator_errors,
-                  "samples_rejected": dict(pipe.plausibility.status.rejected)},   # pipeline.plausibility
+                  "samples_rejected": dict(pipe.plausibility.status.rejected),    # pipeline.plausibility
+                  "ekf_diverged": dict(pipe.status.ekf_diverged), "ekf_resets": dict(pipe.status.ekf_resets)},
     )
     if out_dir is not None:
         from sim.report import write_report
