@@ -20,12 +20,19 @@ the EKF's estimate and its aid sources' status records, each test with a named t
     ``guard_min_failing_sources`` of them were refused: every such sensor disagrees with the state, so the state
     is what is wrong (one source refused alone is that source's fault, which its gate is there for).  The velocity
     is what the IMU's errors go into first; the other sources go on fusing while it is wrong (in the tests, with
-    the velocity 9.5 m/s off: the baro, the GNSS position, whose error grows slowly, and the sideslip and angle of
+    the velocity 9.6 m/s off: the baro, the GNSS position, whose error grows slowly, and the sideslip and angle of
     attack, which see only the direction of the air velocity), so they do not count.
+``GNSS velocity refused``
+    for ``guard_all_fail_s`` every GNSS velocity was refused by its gate, none fused.  The pipeline fuses GNSS only
+    while it is enabled (the companion: while its GNSS monitor says the receiver is healthy), so the state is what
+    is wrong, even when another aid still agrees with it (in a fuzz flight with the plausibility tests off, spoofed
+    IMU samples had corrupted the optical estimator's gyro-bias filter too, and its steps agreed with a velocity
+    14 m/s off); the EKF's own reset to GNSS (``[ekf] gnss.reset_after_s``) would come only after 5 s.
 
-From the first such refusal on, while at least ``guard_min_failing_sources`` are refused and none fused, the state
-is *suspect* (:attr:`DivergenceGuard.suspect`): its estimate is not valid (a velocity 9.5 m/s off was otherwise sent
-as valid for the second the test takes), and it is valid again as soon as one of them fuses.
+From the first such refusal on (the first refused GNSS velocity, or the refusals of at least
+``guard_min_failing_sources`` velocity aids, none fused since), the state is *suspect*
+(:attr:`DivergenceGuard.suspect`): its estimate is not valid (a velocity 9.6 m/s off was otherwise sent as valid for
+the second the test takes), and it is valid again as soon as one of them fuses.
 
 The bounds are checked on every estimate handed out (:meth:`DivergenceGuard.bounds`, a few comparisons: an estimate
 beyond them is never valid); the whole test with the aid records runs when the pipeline records the estimate
@@ -48,11 +55,13 @@ if TYPE_CHECKING:
 US_PER_S = 1_000_000
 #: the aid sources that measure the ground or air velocity (``aid sources all failing``)
 VELOCITY_AIDS = ("airspeed", "optical", "gnss_vel")
+GNSS_VEL = "gnss_vel"
 STATUSTEXT_MAX_CHARS = 50  # a MAVLink STATUSTEXT's text
 
 
 #: the guard's tests, each reason starting with its name
-TESTS = ("non-finite state", "ground speed", "vertical speed", "height", "aid sources all failing")
+TESTS = ("non-finite state", "ground speed", "vertical speed", "height", "GNSS velocity refused",
+         "aid sources all failing")
 
 
 def reason_test(why: str) -> str:
@@ -94,20 +103,24 @@ class DivergenceGuard:
         self._n_rejected: dict[str, int] = {}
         self._failing_since_us: int | None = None
         self._failing: set[str] = set()
+        self._gnss_since_us: int | None = None
 
     @property
     def failing(self) -> bool:
-        """Whether a velocity aid was refused by its gate since the last one fused."""
-        return self._failing_since_us is not None
+        """Whether a velocity aid was refused by its gate since the last one fused, or the GNSS velocity since it
+        last fused."""
+        return self._failing_since_us is not None or self._gnss_since_us is not None
 
     @property
     def failing_since_us(self) -> int | None:
-        """The stamp of the first refusal since a velocity aid last fused (None: none since)."""
-        return self._failing_since_us
+        """The stamp of the first refusal of :attr:`failing` (None: not failing)."""
+        return min((t for t in (self._failing_since_us, self._gnss_since_us) if t is not None), default=None)
 
     @property
     def suspect(self) -> str:
         """Why the state is suspect at the last :meth:`check` ("" when it is not; module docstring)."""
+        if self._gnss_since_us is not None:
+            return "GNSS velocity refused"
         if len(self._failing) < self.cfg.guard_min_failing_sources:
             return ""
         return f"every velocity aid refused ({', '.join(sorted(self._failing))})"
@@ -136,20 +149,28 @@ class DivergenceGuard:
         if why or not self._fail_us:
             return why
         aids = [(name, st) for name, st in status.items() if name in VELOCITY_AIDS]
+        refused = {name: st for name, st in aids if st.n_rejected > self._n_rejected.get(name, 0) and st.rejected
+                   and st.reason == REASON_GATE}
+        self._n_rejected.update((name, st.n_rejected) for name, st in aids)
+        # every velocity aid refused, none fused since the first refusal
         last_fuse = max((st.t_last_fuse_us for _, st in aids), default=-1)
         since = self._failing_since_us
         if since is not None and last_fuse >= since:
             since, self._failing = None, set()      # a source fused after the failures began: not all failing
-        for name, st in aids:
-            n_before = self._n_rejected.get(name, 0)
-            self._n_rejected[name] = st.n_rejected
-            if st.n_rejected > n_before and st.rejected and st.reason == REASON_GATE and st.t_us > last_fuse:
+        for name, st in refused.items():
+            if st.t_us > last_fuse:
                 self._failing.add(name)
                 since = st.t_us if since is None else min(since, st.t_us)
         self._failing_since_us = since
-        if since is None or len(self._failing) < self.cfg.guard_min_failing_sources:
+        # the GNSS velocity refused, not fused since
+        gnss, g_since = status.get(GNSS_VEL), self._gnss_since_us
+        if gnss is not None and g_since is not None and gnss.t_last_fuse_us >= g_since:
+            g_since = None
+        if GNSS_VEL in refused and g_since is None and refused[GNSS_VEL].t_us > refused[GNSS_VEL].t_last_fuse_us:
+            g_since = refused[GNSS_VEL].t_us
+        self._gnss_since_us = g_since
+        if g_since is not None and e.t_us - g_since >= self._fail_us:
+            return f"GNSS velocity refused for {(e.t_us - g_since) / US_PER_S:.1f} s (the receiver healthy)"
+        if since is None or len(self._failing) < self.cfg.guard_min_failing_sources or e.t_us - since < self._fail_us:
             return ""
-        failing_s = (e.t_us - since) / US_PER_S
-        if e.t_us - since < self._fail_us:
-            return ""
-        return f"aid sources all failing for {failing_s:.1f} s ({', '.join(sorted(self._failing))})"
+        return f"aid sources all failing for {(e.t_us - since) / US_PER_S:.1f} s ({', '.join(sorted(self._failing))})"

@@ -189,19 +189,38 @@ def test_the_bounds_name_what_is_beyond_the_airframe(gsoe_config, camera, field,
 
 
 def test_fixes_that_stay_off_the_estimate_reset_its_position_and_velocity_and_say_so(gsoe_config, camera):
-    """The receiver is right and the EKF wrong (here: the fixes jump 300 m and 4 m/s and stay there): after
-    ``[ekf] gnss_reset_after_s`` of rejection the position and the velocity are the fixes', reported as resets."""
-    pipe, fl, rows = guarded(gsoe_config, camera)
+    """The receiver is right and the EKF wrong (here: the fixes jump 300 m and 4 m/s and stay there; the guard's
+    aid test off): after ``[ekf] gnss_reset_after_s`` of rejection the position and the velocity are the fixes',
+    reported as resets."""
+    pipe, fl, rows = guarded(gsoe_config, camera, guard_all_fail_s=0.0)
     fl.run(20.0)
     dp, dv = np.array([300.0, -200.0, 0.0]), np.array([0.0, 4.0, 0.0])
     fl.fix_offset = (dp, dv)
-    fl.run(8.0)
+    fl.run(6.0)
     assert pipe.status.ekf_diverged == {}
-    assert pipe.status.ekf_resets.get("gnss_pos") == 1 and pipe.status.ekf_resets.get("gnss_vel", 0) >= 1
+    assert pipe.status.ekf_resets.get("gnss_pos") == 1 and pipe.status.ekf_resets.get("gnss_vel") == 1
     texts = [x.text for x in pipe.drain_events()]
     assert "GSOE EKF position reset to GNSS" in texts and "GSOE EKF velocity reset to GNSS" in texts
+    assert [r["reason"].split(" (")[0] for s, r in rows if s == "ekf_events"] == [
+        "EKF position reset to GNSS", "EKF velocity reset to GNSS"]
     e = pipe.estimate()
     np.testing.assert_allclose(e.pos_ne_m, fl.truth_pos(e.t_us)[:2] + dp[:2], atol=10.0)
+
+
+def test_a_refused_healthy_gnss_velocity_makes_the_estimate_suspect_then_restarts_the_filter(gsoe_config, camera):
+    """With the guard on, the GNSS velocity refused (here: the fixes' velocity 4 m/s off, the optical steps and the
+    airspeed agreeing with the state) makes the estimate invalid at once and restarts the filter from GNSS after
+    ``guard_all_fail_s``, well before the EKF's own 5 s reset."""
+    pipe, fl, _ = guarded(gsoe_config, camera)
+    fl.run(20.0)
+    fl.fix_offset = (np.zeros(3), np.array([0.0, 4.0, 0.0]))
+    fl.run(0.5)
+    e = pipe.estimate()
+    assert not e.valid and e.invalid_reason == "EKF suspect: GNSS velocity refused", e.invalid_reason
+    fl.run(1.5)
+    assert pipe.status.ekf_diverged == {"GNSS velocity refused": 1} and pipe.status.ekf_resets == {"GNSS": 1}
+    ev = pipe.drain_events()
+    assert ev[0].t_us < 21.5 * US and ev[0].text.startswith("GSOE EKF diverged: GNSS velocity refused")
 
 
 class CompanionFeed:
