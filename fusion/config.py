@@ -21,9 +21,34 @@ import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Annotated, Any
+from typing import Annotated, Any, overload
 
 from common.config import ConfigError, In, Validated, build, require
+
+
+class Radians:
+    """A read-only attribute in radians of the config field ``deg_field`` (degrees, the edge's unit): computed at the
+    first read and then kept in the instance, so the filter's per-sample paths read a plain attribute."""
+
+    def __init__(self, deg_field: str) -> None:
+        self.deg_field = deg_field
+        self.name = ""
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.name = name
+
+    @overload
+    def __get__(self, obj: None, owner: type | None = None) -> Radians: ...
+
+    @overload
+    def __get__(self, obj: object, owner: type | None = None) -> float: ...
+
+    def __get__(self, obj: object | None, owner: type | None = None) -> float | Radians:
+        if obj is None:
+            return self
+        value = math.radians(getattr(obj, self.deg_field))
+        object.__setattr__(obj, self.name, value)      # the instance's own attribute from now on (frozen dataclass)
+        return value
 
 
 @dataclass(frozen=True)
@@ -47,17 +72,9 @@ class ProcessNoise(Validated):
     aoa_ofs_rw_deg_per_rt_s: Annotated[float, In(
         0.0, 1.0, doc="lift-model angle-of-attack offset walk (deg after 1 s)")] = 0.005
 
-    @property
-    def yaw_bias_rw_rad_per_rt_s(self) -> float:
-        return math.radians(self.yaw_bias_rw_deg_per_rt_s)
-
-    @property
-    def opt_rot_rw_rad_per_rt_s(self) -> float:
-        return math.radians(self.opt_rot_rw_deg_per_rt_s)
-
-    @property
-    def aoa_ofs_rw_rad_per_rt_s(self) -> float:
-        return math.radians(self.aoa_ofs_rw_deg_per_rt_s)
+    yaw_bias_rw_rad_per_rt_s = Radians("yaw_bias_rw_deg_per_rt_s")
+    opt_rot_rw_rad_per_rt_s = Radians("opt_rot_rw_deg_per_rt_s")
+    aoa_ofs_rw_rad_per_rt_s = Radians("aoa_ofs_rw_deg_per_rt_s")
 
 
 @dataclass(frozen=True)
@@ -107,17 +124,9 @@ class InitialSigmas(Validated):
         1e-5, 5.0, doc="side-force sideslip offset, g x roll error + trim (m/s^2)")] = 0.2
     aoa_ofs_sigma_deg: Annotated[float, In(1e-3, 30.0, doc="lift-model angle-of-attack offset (deg)")] = 2.0
 
-    @property
-    def yaw_bias_sigma_rad(self) -> float:
-        return math.radians(self.yaw_bias_sigma_deg)
-
-    @property
-    def opt_rot_sigma_rad(self) -> float:
-        return math.radians(self.opt_rot_sigma_deg)
-
-    @property
-    def aoa_ofs_sigma_rad(self) -> float:
-        return math.radians(self.aoa_ofs_sigma_deg)
+    yaw_bias_sigma_rad = Radians("yaw_bias_sigma_deg")
+    opt_rot_sigma_rad = Radians("opt_rot_sigma_deg")
+    aoa_ofs_sigma_rad = Radians("aoa_ofs_sigma_deg")
 
 
 @dataclass(frozen=True)
@@ -183,9 +192,7 @@ class SideslipConfig(Validated):
     turb_noise_factor: Annotated[float, In(
         0.0, 10.0, doc="+ (factor x turbulence sigma / airspeed)^2 rad^2: lateral turbulence not followed (-)")] = 1.4
 
-    @property
-    def sigma_rad(self) -> float:
-        return math.radians(self.sigma_deg)
+    sigma_rad = Radians("sigma_deg")
 
 
 @dataclass(frozen=True)
@@ -198,9 +205,7 @@ class AoaConfig(Validated):
         0.0, 10.0, doc="+ (factor x vertical_sigma_ratio x turbulence sigma / airspeed)^2 rad^2 (-)")] = 1.4
     max_deg: Annotated[float, In(0.1, 45.0, doc="not fused beyond: the stall ends the linear lift curve (deg)")] = 10.0
 
-    @property
-    def sigma_rad(self) -> float:
-        return math.radians(self.sigma_deg)
+    sigma_rad = Radians("sigma_deg")
 
 
 @dataclass(frozen=True)
@@ -239,17 +244,9 @@ class OpticalConfig(Validated):
     rel_rot_fallback_deg: Annotated[float, In(0.0, 180.0, doc="rotation assumed when a step has none (deg)")] = 10.0
     min_height_m: Annotated[float, In(0.1, 1e4, doc="no optical fusion below this height above ground (m)")] = 5.0
 
-    @property
-    def att_rel_sigma_rad(self) -> float:
-        return math.radians(self.att_rel_sigma_deg)
-
-    @property
-    def att_rel_sigma_rad_per_s(self) -> float:
-        return math.radians(self.att_rel_sigma_deg_per_s)
-
-    @property
-    def rel_rot_fallback_rad(self) -> float:
-        return math.radians(self.rel_rot_fallback_deg)
+    att_rel_sigma_rad = Radians("att_rel_sigma_deg")
+    att_rel_sigma_rad_per_s = Radians("att_rel_sigma_deg_per_s")
+    rel_rot_fallback_rad = Radians("rel_rot_fallback_deg")
 
 
 @dataclass(frozen=True)
@@ -287,9 +284,7 @@ class Validity(Validated):
         0.0, 100.0, doc="ground speed at least: drift undefined at rest (m/s)")] = 3.0
     aid_timeout_s: Annotated[float, In(1e-3, 1e4, doc="optical or GNSS fused within (s)")] = 2.0
 
-    @property
-    def drift_sigma_max_rad(self) -> float:
-        return math.radians(self.drift_sigma_max_deg)
+    drift_sigma_max_rad = Radians("drift_sigma_max_deg")
 
 
 @dataclass(frozen=True)

@@ -91,7 +91,7 @@ def _whiten_2x2(Sm: list[list[float]], y: Sequence[float]) -> tuple[Mat, list[fl
     c11 = math.sqrt(s11 - c10 * c10)
     i00, i10, i11 = 1.0 / c00, -c10 / (c00 * c11), 1.0 / c11     # C^-1 = [[i00, 0], [i10, i11]]
     w0, w1 = i00 * y[0], i10 * y[0] + i11 * y[1]
-    return np.array(((i00, i10), (0.0, i11))), [w0, w1], w0 * w0 + w1 * w1
+    return np.fromiter((i00, i10, 0.0, i11), float, 4).reshape(2, 2), [w0, w1], w0 * w0 + w1 * w1
 
 
 def _whiten(Sm: list[list[float]], y: Sequence[float]) -> tuple[Mat, list[float], float] | None:
@@ -228,16 +228,15 @@ class FilterCore:
         the prior is kept.  A NaN or inf in a factor makes that sum non-finite, and with finite factors the update
         is finite: ``P`` is finite, and the NIS gate bounds ``|K y|`` by ``sqrt(gate * P_ii)`` and the subtracted
         term by ``|P_ij|``-sized values."""
-        P_new = self.P - A
-        if self._schmidt:
-            for i, g in self._partial:             # D dx
-                dx[i] *= g
-            for i, j, cc in self._schmidt:         # partial-update states: P_ij += (1-g_i)(1-g_j) A_ij
-                P_new[i, j] += cc * A[i, j]
         if not math.isfinite(check):
             row.set(t_us, rejected=True, reason=REASON_NUMERIC, innovation=innov, innovation_var=var,
                     test_ratio=ratio)
             return False
+        P_new = self.P - A
+        for i, g in self._partial:                 # D dx
+            dx[i] *= g
+        for i, j, cc in self._schmidt:             # partial-update states: P_ij += (1-g_i)(1-g_j) A_ij
+            P_new[i, j] += cc * A.item(i, j)
         self.x, self.P = self.x + dx, P_new
         self.version += 1
         row.fused_now(t_us, innov, var, ratio)

@@ -103,6 +103,7 @@ class ImuIntegrator:
         gap = False
         fx = fy = fz = gx = gy = gz = 0.0
         lat, lat_rate, nrm = self.lat_f, self._lat_rate_per_s, self.nrm_f
+        gap_us, period_us = self._gap_us, self._period_us
         if math.isnan(lat) and q:
             lat, nrm = q[0][2], q[0][3]                   # the low-passes start at the first sample's f_y, f_z
         t = t_in
@@ -122,7 +123,7 @@ class ImuIntegrator:
                 a0 = att
             wx, wy, wz = gy * fz - gz * fy, gz * fx - gx * fz, gx * fy - gy * fx     # omega x f (body)
             dt_us = t - t_in
-            gap = dt_us > self._gap_us and n_fused > 0
+            gap = dt_us > gap_us and n_fused > 0
             n_fused += 1
             if dt_us > 0:
                 dt = dt_us * S_PER_US
@@ -138,7 +139,7 @@ class ImuIntegrator:
                 s11, s12, s13 = s11 + ax * mid, s12 + ay * mid, s13 + az * mid
                 opened = True
                 t_in = t
-                if t_in - t_x >= self._period_us:
+                if t_in - t_x >= period_us:
                     self._seg = [s0, s1, s2, s3, s4, s5, s6, s7, s8, s9, s10, s11, s12, s13]
                     self._seg_open, self.t_in_us = opened, t_in
                     self._flush()

@@ -383,26 +383,20 @@ class ProcessModel:
 
 def initial_variances(cfg: EkfConfig) -> Vec:
     """Diagonal of the initial covariance (also what a covariance reset restores)."""
-    c = cfg
+    c = cfg.init
     var = np.zeros(S.dim)
-    var[S.pos_ne] = c.init.pos_ne_sigma_m**2
-    var[S.pos_d] = c.init.pos_d_sigma_m**2
-    var[S.vel_ne] = c.init.vel_ne_sigma_m_s**2
-    var[S.vel_d] = c.init.vel_d_sigma_m_s**2
-    var[S.wind_ne] = c.init.wind_sigma_m_s**2
-    var[S.wind_mean_ne] = c.init.wind_sigma_m_s**2
-    var[S.wind_d] = (c.wind.vertical_sigma_ratio * c.wind.turb_sigma_m_s)**2     # the turbulence's stationary variance
-    var[S.accel_bias_b] = c.init.accel_bias_sigma_m_s2**2
-    var[S.yaw_bias] = c.init.yaw_bias_sigma_rad**2
-    var[S.opt_rot] = c.init.opt_rot_sigma_rad**2
-    var[S.baro_bias] = c.init.baro_bias_sigma_m**2
-    var[S.terrain_h] = c.init.terrain_sigma_m**2
-    var[S.tas_scale] = c.init.tas_scale_sigma**2
-    var[S.att_delay] = c.init.att_delay_sigma_s**2
-    var[S.side_force_ofs] = c.init.side_force_ofs_sigma_m_s2**2
-    var[S.aoa_ofs] = math.radians(c.init.aoa_ofs_sigma_deg)**2
-    var[S.base_pos_ne] = c.init.pos_ne_sigma_m**2
-    var[S.base_pos_d] = c.init.pos_d_sigma_m**2
+    for fields, sigma in (
+            (("pos_ne", "base_pos_ne"), c.pos_ne_sigma_m), (("pos_d", "base_pos_d"), c.pos_d_sigma_m),
+            (("vel_ne",), c.vel_ne_sigma_m_s), (("vel_d",), c.vel_d_sigma_m_s),
+            (("wind_ne", "wind_mean_ne"), c.wind_sigma_m_s),
+            (("wind_d",), cfg.wind.vertical_sigma_ratio * cfg.wind.turb_sigma_m_s),  # stationary turbulence
+            (("accel_bias_b",), c.accel_bias_sigma_m_s2), (("yaw_bias",), c.yaw_bias_sigma_rad),
+            (("opt_rot",), c.opt_rot_sigma_rad), (("baro_bias",), c.baro_bias_sigma_m),
+            (("terrain_h",), c.terrain_sigma_m), (("tas_scale",), c.tas_scale_sigma),
+            (("att_delay",), c.att_delay_sigma_s), (("side_force_ofs",), c.side_force_ofs_sigma_m_s2),
+            (("aoa_ofs",), c.aoa_ofs_sigma_rad)):
+        for name in fields:
+            var[getattr(S, name)] = sigma**2
     return var
 
 

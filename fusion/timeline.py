@@ -51,7 +51,7 @@ def is_int(t: Any) -> bool:
 def finite(*values: Any) -> bool:
     """All values (numbers or arrays of numbers) finite; anything that is not numeric counts as not finite."""
     for v in values:
-        if isinstance(v, float | int) and not isinstance(v, bool):
+        if type(v) is float or (isinstance(v, float | int) and not isinstance(v, bool)):
             if not math.isfinite(v):
                 return False
             continue
@@ -145,7 +145,7 @@ class Timeline:
         if not, ``row`` says why.  What is due is processed first, so "late" means the same whenever it is asked."""
         if self._imu_q:
             self.process_due()
-        if not is_int(t_us):
+        if not (type(t_us) is int or is_int(t_us)):
             row.set(-1, rejected=True, reason=REASON_BAD_TIME)
             return False
         if not finite(value):

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Self
 
 import numpy as np
 
@@ -28,56 +28,50 @@ REASON_BAD_SIGMA = "sigma not a positive finite number"
 REASON_RESET_TO_MEAS = "state reset to the measurement after continuous rejection"
 
 
-def _variances(ne: float, d: float, dim: int) -> tuple[float, ...]:
-    return (ne * ne, ne * ne, d * d)[:dim]
-
-
 @dataclass(frozen=True, slots=True)
-class GnssPosition(ModelBase):
-    """GNSS position in the local NED frame (m): ``pos_ne`` (``dim=2``) or ``pos_ne, pos_d`` (``dim=3``), with the
-    noise variances ``var_m2`` (m^2, one per axis).  ``H`` is the rows :attr:`state_idx` of the identity."""
+class GnssFix(ModelBase):
+    """A direct GNSS measurement of the ``dim`` states from :attr:`START` (2: north/east, 3: with down) with the noise
+    variances ``var`` (one per axis, in the square of the measurement's unit); ``H`` is the rows :attr:`state_idx` of
+    the identity.  The config's sigmas are the fields :attr:`SIGMA_FIELDS` (horizontal, vertical) of ``gnss``."""
 
+    START: ClassVar[int]
+    SIGMA_FIELDS: ClassVar[tuple[str, str]]
     dim: int
-    var_m2: tuple[float, ...]
+    var: tuple[float, ...]
 
     @classmethod
-    def from_config(cls, cfg: EkfConfig, dim: int, sigma_ne_m: float | None = None,
-                    sigma_d_m: float | None = None) -> GnssPosition:
+    def from_config(cls, cfg: EkfConfig, dim: int, sigma_ne: float | None = None,
+                    sigma_d: float | None = None) -> Self:
         """The receiver's own accuracies replace the config's when given."""
-        ne = cfg.gnss.pos_ne_sigma_m if sigma_ne_m is None else float(sigma_ne_m)
-        d = cfg.gnss.pos_d_sigma_m if sigma_d_m is None else float(sigma_d_m)
-        return cls(dim, _variances(ne, d, dim))
+        ne = getattr(cfg.gnss, cls.SIGMA_FIELDS[0]) if sigma_ne is None else float(sigma_ne)
+        d = getattr(cfg.gnss, cls.SIGMA_FIELDS[1]) if sigma_d is None else float(sigma_d)
+        return cls(dim, (ne * ne, ne * ne, d * d)[:dim])
 
     @property
     def state_idx(self) -> list[int]:
         """Indices of the measured states, in measurement order."""
-        return list(range(S.pos_ned.start, S.pos_ned.start + self.dim))
+        return list(range(self.START, self.START + self.dim))
 
     def linearise(self, x: Vec) -> Linearised:
-        return Linearised(tuple(x[self.state_idx].tolist()), None, self.state_idx, self.var_m2[: self.dim])
+        return Linearised(tuple(x[self.state_idx].tolist()), None, self.state_idx, self.var[: self.dim])
 
 
 @dataclass(frozen=True, slots=True)
-class GnssVelocity(ModelBase):
-    """GNSS ground velocity (m/s): ``vel_ne`` (``dim=2``, e.g. from ground speed and course) or ``vel_ned``, with the
-    noise variances ``var_m2_s2`` ((m/s)^2 per axis); like :class:`GnssPosition`, a direct measurement."""
+class GnssPosition(GnssFix):
+    """GNSS position in the local NED frame (m): ``pos_ne`` (``dim=2``) or ``pos_ne, pos_d`` (``dim=3``); ``var`` in
+    m^2."""
 
-    dim: int
-    var_m2_s2: tuple[float, ...]
+    START: ClassVar[int] = S.pos_ned.start
+    SIGMA_FIELDS: ClassVar[tuple[str, str]] = ("pos_ne_sigma_m", "pos_d_sigma_m")
 
-    @classmethod
-    def from_config(cls, cfg: EkfConfig, dim: int, sigma_ne_m_s: float | None = None,
-                    sigma_d_m_s: float | None = None) -> GnssVelocity:
-        ne = cfg.gnss.vel_ne_sigma_m_s if sigma_ne_m_s is None else float(sigma_ne_m_s)
-        d = cfg.gnss.vel_d_sigma_m_s if sigma_d_m_s is None else float(sigma_d_m_s)
-        return cls(dim, _variances(ne, d, dim))
 
-    @property
-    def state_idx(self) -> list[int]:
-        return list(range(S.vel_ned.start, S.vel_ned.start + self.dim))
+@dataclass(frozen=True, slots=True)
+class GnssVelocity(GnssFix):
+    """GNSS ground velocity (m/s): ``vel_ne`` (``dim=2``, e.g. from ground speed and course) or ``vel_ned``; ``var`` in
+    (m/s)^2."""
 
-    def linearise(self, x: Vec) -> Linearised:
-        return Linearised(tuple(x[self.state_idx].tolist()), None, self.state_idx, self.var_m2_s2[: self.dim])
+    START: ClassVar[int] = S.vel_ned.start
+    SIGMA_FIELDS: ClassVar[tuple[str, str]] = ("vel_ne_sigma_m_s", "vel_d_sigma_m_s")
 
 
 class _GnssAid(AidSource):
@@ -105,7 +99,7 @@ class _GnssAid(AidSource):
             return None
         return (a, sigmas), 0.0
 
-    def model(self, t_us: int, dim: int, sigmas: tuple[float | None, float | None]) -> GnssPosition | GnssVelocity:
+    def model(self, t_us: int, dim: int, sigmas: tuple[float | None, float | None]) -> GnssFix:
         raise NotImplementedError
 
     def gate_nis(self) -> float:
@@ -128,7 +122,7 @@ class _GnssAid(AidSource):
                         (t_us - since) / US_PER_S, t_us)
         return True
 
-    def reset(self, t_us: int, sample: tuple[Vec, GnssPosition | GnssVelocity]) -> None:
+    def reset(self, t_us: int, sample: tuple[Vec, GnssFix]) -> None:
         """The measured states become the fix with its noise (the rejected sample is counted as used after all)."""
         z, model = sample
         lin = model.linearise(self.core.x)
@@ -163,7 +157,7 @@ class GnssPositionAid(_GnssAid):
         if self._last_us is not None and tau > 0.0:
             dt = max(t_us - self._last_us, 1) / US_PER_S
             k = max(1.0, 2.0 * tau / dt)
-            m = GnssPosition(dim, tuple(v * k for v in m.var_m2))
+            m = GnssPosition(dim, tuple(v * k for v in m.var))
         self._last_us = t_us
         return m
 

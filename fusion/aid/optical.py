@@ -75,7 +75,7 @@ class OpticalDisplacement(ModelBase):
 
     def height_base_m(self, x: Vec) -> float:
         """Height above ground at the base snapshot according to ``x`` (m)."""
-        return float(-x[_BD] - x[_TH])
+        return -x.item(_BD) - x.item(_TH)
 
     def linearise(self, x: Vec) -> Linearised:
         c, s, along, cross, h, k = self._parts(x)
@@ -121,15 +121,15 @@ class OpticalDisplacement(ModelBase):
         relative attitude error between base and current frame, ``optical.att_rel_sigma_rad +
         optical.att_rel_sigma_per_rad * rel_rot_rad + optical.att_rel_sigma_rad_per_s * (t - base_t)``
         (independent of altitude: an angle error moves the image by ``f * angle`` pixels at any height)."""
+        o = cfg.optical
         psr = step.quality.psr
-        q = psr / cfg.optical.psr_ref if not math.isnan(psr) else 0.0
-        q = min(1.0, max(cfg.optical.quality_floor, q))
-        rel = step.rel_rot_rad if math.isfinite(step.rel_rot_rad) else cfg.optical.rel_rot_fallback_rad
+        q = psr / o.psr_ref if not math.isnan(psr) else 0.0
+        q = min(1.0, max(o.quality_floor, q))
+        rel = step.rel_rot_rad if math.isfinite(step.rel_rot_rad) else o.rel_rot_fallback_rad
         elapsed_s = max(0, step.t_us - step.base_t_us) * 1e-6
-        att_rad = (cfg.optical.att_rel_sigma_rad + cfg.optical.att_rel_sigma_per_rad * abs(rel)
-                   + cfg.optical.att_rel_sigma_rad_per_s * elapsed_s)
-        match = cfg.optical.match_sigma_px / q
-        ssd = cfg.optical.ssd_sigma_factor * step.quality.match_sigma_px
+        att_rad = o.att_rel_sigma_rad + o.att_rel_sigma_per_rad * abs(rel) + o.att_rel_sigma_rad_per_s * elapsed_s
+        match = o.match_sigma_px / q
+        ssd = o.ssd_sigma_factor * step.quality.match_sigma_px
         if ssd > match:                                   # False for nan (no SSD precision: the PSR model alone)
             match = ssd
         return match, step.focal_px * att_rad
@@ -151,6 +151,7 @@ class OpticalAid(AidSource):
         super().__init__(*args)
         self._clone_cycle: int | None = None
         self._last_cycle_pushed: int | None = None
+        self._min_height_m, self._gate = self.cfg.optical.min_height_m, self.cfg.gates.optical_nis
 
     def accept(self, t_us: Any, sample: GsoeStep) -> tuple[Any, Any] | None:
         step, row = sample, self.row
@@ -196,7 +197,7 @@ class OpticalAid(AidSource):
             row.set(t, rejected=True, reason=REASON_INVALID_MATCH)
             return True
         model = OpticalDisplacement.for_step(step, self.cfg)
-        if model.height_base_m(self.core.x) < self.cfg.optical.min_height_m:
+        if model.height_base_m(self.core.x) < self._min_height_m:
             row.set(t, rejected=True, reason=REASON_LOW_HEIGHT)
             return True
         if self._clone_cycle != step.cycle_id:
@@ -205,7 +206,7 @@ class OpticalAid(AidSource):
                 return True
             self.reset(t, (model, step))
             return True
-        self.fuse(t, (float(step.dx_px), float(step.dy_px)), model, self.cfg.gates.optical_nis)
+        self.fuse(t, (float(step.dx_px), float(step.dy_px)), model, self._gate)
         return True
 
     def clone(self, t_us: int, cycle_id: int) -> bool:
