@@ -54,9 +54,13 @@ Clock
       ``MAX_TRANSPORT_DELAY_US`` after it (autopilot reboot, corrupt frame) is not trusted: the message is placed
       as one without a timestamp, with a warning.
 Airspeed
-    ArduPilot logs equivalent airspeed (EAS); ``tas_m_s = eas_m_s * sqrt(rho0 / rho)`` with the density of the
-    ISA atmosphere at the logged static pressure (the air temperature is not logged; 10 K of error is 1.7 % of
-    TAS).  Without a logged pressure ``tas_m_s = eas_m_s`` and the report says so.
+    ArduPilot logs equivalent airspeed (EAS); ``tas_m_s = eas_m_s * sqrt(rho0 / rho)`` with the density at the
+    logged static pressure and the air temperature ArduPilot's EKF assumes for the same conversion: the baro's own
+    temperature, at most :data:`BARO_AIR_TEMP_MAX_C` (a board's baro reads up to 30 K above the air, self-heated:
+    55 C on the ALFA logs), at the log's lowest altitude, less the ISA lapse rate above it (``ReadReport.air_temp_c``;
+    10 K is 1.7 % of TAS: the ISA temperature, 12.7 C at the ALFA field, made the ALFA TAS 2.2 % lower than the
+    autopilot's).  Without a baro temperature the ISA atmosphere's; without a logged pressure ``tas_m_s = eas_m_s``
+    and the report says so.
 Bad input
     Truncated or corrupt logs give what was readable and a :class:`ReadReport` whose ``warnings`` say what was
     lost; a file with nothing readable gives no samples and a warning.  An unknown extension raises
@@ -110,6 +114,10 @@ MAX_TRANSPORT_DELAY_US = 10_000_000
 CLOCK_EARLY_TOL_US = 200_000
 #: Window of receive time over which the minimum of ``receive - stamp`` is taken (longer than a link's bursts).
 CLOCK_WINDOW_S = 10.0
+#: The air temperature taken from a baro's own temperature is at most this (ArduPilot's AP_Baro calibration
+#: temperature: the baro reads high, self-heated, often by 30 K).
+BARO_AIR_TEMP_MAX_C = 25.0
+KELVIN_AT_0_C = 273.15
 #: Undecodable tlog frames above this fraction of all frames earn a warning (the ALFA logs have about 1 %).
 BAD_FRAME_WARN_FRACTION = 0.05
 GPS_FIX_TYPE_3D = 3  #: MAVLink GPS_FIX_TYPE_3D_FIX; DataFlash GPS.Status and ULog fix_type use the same numbers
@@ -157,7 +165,8 @@ class ReadReport:
     (``"ImuSample"``): how many samples and from which message or topic.  ``t0_boot_us`` is the autopilot boot
     clock at ``t_us == 0`` (``None`` when only receive times were available).  ``origin_*`` is the GNSS origin of
     the local NED frame (``None`` without a 3-D fix).  ``frames``/``bad_frames``: MAVLink frames read and frames
-    that failed to decode (tlog only).
+    that failed to decode (tlog only).  ``air_temp_c``: the air temperature at the log's lowest altitude behind its
+    EAS -> TAS conversion (``None``: the ISA atmosphere's).
     """
 
     path: str
@@ -171,6 +180,7 @@ class ReadReport:
     origin_alt_m: float | None = None
     frames: int = 0
     bad_frames: int = 0
+    air_temp_c: float | None = None
 
     @property
     def ok(self) -> bool:
@@ -208,10 +218,15 @@ def isa_pressure_altitude_m(pressure_pa: NDArray[np.float64] | float) -> NDArray
     return ISA_T0_K / ISA_LAPSE_K_M * (1.0 - (np.asarray(pressure_pa, dtype=float) / ISA_P0_PA) ** expo)
 
 
-def eas_to_tas_ratio(pressure_pa: NDArray[np.float64] | float) -> NDArray[np.float64]:
-    """``sqrt(rho0 / rho)`` of the ISA atmosphere at the given static pressure."""
+def eas_to_tas_ratio(pressure_pa: NDArray[np.float64] | float,
+                     ground: tuple[float, float] | None = None) -> NDArray[np.float64]:
+    """``sqrt(rho0 / rho)`` at the given static pressure: with the ISA atmosphere's temperature, or with ``ground =
+    (pressure_pa, temperature_k)`` that temperature at that pressure less the ISA lapse rate above it."""
     p = np.asarray(pressure_pa, dtype=float)
-    temp_k = ISA_T0_K - ISA_LAPSE_K_M * isa_pressure_altitude_m(p)
+    if ground is None:
+        temp_k = ISA_T0_K - ISA_LAPSE_K_M * isa_pressure_altitude_m(p)
+    else:
+        temp_k = ground[1] - ISA_LAPSE_K_M * (isa_pressure_altitude_m(p) - isa_pressure_altitude_m(ground[0]))
     return np.sqrt(ISA_RHO0_KG_M3 / (p / (ISA_R_J_KG_K * temp_k)))
 
 
@@ -245,7 +260,7 @@ class _Raw:
     imu: list[tuple[int, tuple[float, ...]]] = field(default_factory=list)  # gyro xyz, accel xyz
     att: list[tuple[int, tuple[float, ...]]] = field(default_factory=list)  # roll, pitch, yaw (rad)
     air: list[tuple[int, tuple[float, ...]]] = field(default_factory=list)  # eas or tas, is_tas (1/0)
-    baro: list[tuple[int, tuple[float, ...]]] = field(default_factory=list)  # pressure Pa
+    baro: list[tuple[int, tuple[float, ...]]] = field(default_factory=list)  # pressure Pa[, baro temperature C]
     gnss: list[tuple[int, tuple[float, ...]]] = field(default_factory=list)  # lat, lon, alt, vn, ve, vd, fix, sats
     wind: list[tuple[int, tuple[float, ...]]] = field(default_factory=list)  # from rad, speed
     sources: dict[str, str] = field(default_factory=dict)
@@ -292,18 +307,24 @@ def _assemble(path: Path, fmt: str, raw: _Raw) -> FlightLog:
         add(0, ImuSample(t_us=t - t0, gyro_b_rad_s=np.array(v[:3]), accel_b_m_s2=np.array(v[3:6])))
     for t, v in att:
         add(1, AttitudeSample(t_us=t - t0, roll_rad=v[0], pitch_rad=v[1], yaw_rad=float(wrap_pi(v[2]))))
+    air_temp_c: float | None = None
     if air:
         p_t = np.array([t for t, _ in baro], dtype=float)
         p_v = np.array([v[0] for _, v in baro], dtype=float)
+        baro_temp_c = [v[1] for _, v in baro if len(v) > 1]
         needs_eas2tas = any(v[1] == 0.0 for _, v in air)
         if needs_eas2tas and len(p_t) == 0:
             warnings.append("no static pressure in the log: true airspeed taken equal to the logged (equivalent) "
                             "airspeed")
+        ground: tuple[float, float] | None = None
+        if needs_eas2tas and len(p_t) and baro_temp_c:
+            air_temp_c = min(float(np.median(baro_temp_c)), BARO_AIR_TEMP_MAX_C)
+            ground = (float(np.max(p_v)), air_temp_c + KELVIN_AT_0_C)
         for t, v in air:
             if v[1]:
                 add(2, AirspeedSample(t_us=t - t0, tas_m_s=v[0], eas_m_s=math.nan))
             else:
-                ratio = float(eas_to_tas_ratio(np.interp(t, p_t, p_v))) if len(p_t) else 1.0
+                ratio = float(eas_to_tas_ratio(np.interp(t, p_t, p_v), ground)) if len(p_t) else 1.0
                 add(2, AirspeedSample(t_us=t - t0, tas_m_s=v[0] * ratio, eas_m_s=v[0]))
     for t, v in baro:
         add(3, BaroSample(t_us=t - t0, alt_m=float(isa_pressure_altitude_m(v[0])), pressure_pa=v[0]))
@@ -337,7 +358,8 @@ def _assemble(path: Path, fmt: str, raw: _Raw) -> FlightLog:
         sources={k: v for k, v in raw.sources.items() if k in counts},
         t0_boot_us=int(t0) if raw.t0_boot_known else None,
         origin_lat_deg=origin[0] if origin else None, origin_lon_deg=origin[1] if origin else None,
-        origin_alt_m=origin[2] if origin else None, frames=raw.frames, bad_frames=raw.bad_frames)
+        origin_alt_m=origin[2] if origin else None, frames=raw.frames, bad_frames=raw.bad_frames,
+        air_temp_c=air_temp_c)
     return FlightLog(samples=ordered, report=report)
 
 
@@ -378,7 +400,7 @@ def _tlog_values(mtype: str, m: Any) -> tuple[float, ...] | None:
     if mtype == "VFR_HUD":
         return (m.airspeed, 0.0)
     if mtype == "SCALED_PRESSURE":
-        return (m.press_abs * 100.0,)
+        return (m.press_abs * 100.0, m.temperature * 0.01)
     if mtype == "WIND":
         return (math.radians(m.direction), m.speed)
     if mtype == "GPS_RAW_INT":
@@ -664,7 +686,8 @@ def _df_record(m: Any, raw: _Raw, winds: dict[str, list[tuple[int, tuple[float, 
         raw.att.append((t, (math.radians(m.Roll), math.radians(m.Pitch), math.radians(m.Yaw))))
         raw.sources["AttitudeSample"] = "ATT"
     elif mtype == "BARO" and instance == 0:
-        raw.baro.append((t, (float(m.Press),)))
+        temp_c = getattr(m, "Temp", None)
+        raw.baro.append((t, (float(m.Press),) if temp_c is None else (float(m.Press), float(temp_c))))
         raw.sources["BaroSample"] = "BARO"
     elif mtype == "ARSP" and instance == 0:
         raw.air.append((t, (float(m.Airspeed), 0.0)))

@@ -613,6 +613,7 @@ def run_replay(log_path: str | Path, *, out_dir: str | Path | None = None, confi
         "samples_rejected": dict(pipe.plausibility.status.rejected),   # pipeline.plausibility, by kind: reason
         "baro_offset_m": baro_offset_m,
         "gnss_delay_s": rcfg.gnss_delay_s,
+        "eas_to_tas_air_temp_c": report.air_temp_c,        # None: the ISA atmosphere's (nav.logreader)
         "ekf_replay_profile": REPLAY_PROFILE,
         "log_warnings": list(report.warnings),
     }

@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from common.samples import AirspeedSample, AttitudeSample, GnssSample
-from nav.logreader import read_log
+from common.samples import AirspeedSample, AttitudeSample, BaroSample, GnssSample
+from nav.logreader import eas_to_tas_ratio, isa_pressure_altitude_m, read_log
 from nav.replay import ReplayConfig
 from nav.replay_checks import along_cross_heading, autopilot_position_lag_s, gnss_velocity_drift_m_s, wind_triangle_fit
 from tests.conftest import shared_data
@@ -76,3 +76,31 @@ def test_replay_gnss_delay_is_the_lag_of_the_autopilots_own_track():
     # unshifted, the same track is metres away: the lag is resolved
     unshifted = autopilot_position_lag_s(str(path), flight, np.array([0.0]))
     assert unshifted is not None and unshifted[1] > 3 * rms_m
+
+
+def test_eas_to_tas_with_a_ground_temperature_is_the_ideal_gas_density():
+    p_pa, t_k = 97150.0, 298.15
+    rho = p_pa / (287.053 * t_k)
+    assert float(eas_to_tas_ratio(p_pa, (p_pa, t_k))) == pytest.approx(math.sqrt(1.225 / rho), rel=1e-3)
+    # 500 m higher (ISA pressure altitude): the ISA lapse rate, 3.25 K colder
+    p_up = 101325.0 * (1.0 - 0.0065 * (float(isa_pressure_altitude_m(p_pa)) + 500.0) / 288.15) ** 5.25588
+    rho_up = p_up / (287.053 * (t_k - 3.25))
+    assert float(eas_to_tas_ratio(p_up, (p_pa, t_k))) == pytest.approx(math.sqrt(1.225 / rho_up), rel=1e-3)
+
+
+def test_alfa_true_airspeed_is_the_autopilots():
+    """The logged EAS becomes the TAS ArduPilot's EKF fused (AP_Baro::get_EAS2TAS: the baro temperature capped at
+    25 C at the ground, the ISA lapse above it, its own gas constant 287.26), not the ISA atmosphere's 2.2 % less."""
+    flight = read_log(shared_data("flightlogs", LONG))
+    assert flight.report.air_temp_c == 25.0                   # the baro reads 54-56 C
+    air = flight.of_type(AirspeedSample)
+    baro = flight.of_type(BaroSample)
+    tb = np.array([b.t_us for b in baro], dtype=float)
+    pb = np.array([b.pressure_pa for b in baro])
+    ta = np.array([a.t_us for a in air], dtype=float)
+    p = np.interp(ta, tb, pb)
+    height_m = 44330.0 * (1.0 - (p / pb.max()) ** 0.190263)   # above the lowest point (ISA, within 1 m here)
+    ardupilot = np.sqrt(1.225 / (p / (287.26 * (25.0 + 273.15 - 0.0065 * height_m))))
+    ours = np.array([a.tas_m_s / a.eas_m_s for a in air])
+    assert np.max(np.abs(ours / ardupilot - 1.0)) < 0.002
+    assert np.median(ours / eas_to_tas_ratio(p)) == pytest.approx(1.022, abs=0.003)   # vs the ISA temperature
