@@ -18,37 +18,11 @@ degrees of freedom.
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Annotated, Any, overload
+from typing import Annotated, Any
 
-from common.config import ConfigError, In, Validated, build, require
-
-
-class Radians:
-    """A read-only attribute in radians of the config field ``deg_field`` (degrees, the edge's unit): computed at the
-    first read and then kept in the instance, so the filter's per-sample paths read a plain attribute."""
-
-    def __init__(self, deg_field: str) -> None:
-        self.deg_field = deg_field
-        self.name = ""
-
-    def __set_name__(self, owner: type, name: str) -> None:
-        self.name = name
-
-    @overload
-    def __get__(self, obj: None, owner: type | None = None) -> Radians: ...
-
-    @overload
-    def __get__(self, obj: object, owner: type | None = None) -> float: ...
-
-    def __get__(self, obj: object | None, owner: type | None = None) -> float | Radians:
-        if obj is None:
-            return self
-        value = math.radians(getattr(obj, self.deg_field))
-        object.__setattr__(obj, self.name, value)      # the instance's own attribute from now on (frozen dataclass)
-        return value
+from common.config import ConfigError, In, Radians, Validated, build, require
 
 
 @dataclass(frozen=True)
