@@ -132,7 +132,7 @@ class FilterCore:
         P = FPF + FPF.T                  # (not P += P.T: NumPy would first copy the overlapping transpose)
         P *= 0.5
         for i, q in add_var:
-            P[i, i] += q
+            P[i, i] = P.item(i, i) + q
         self.P = P
         self.n_predictions += 1
         self.version += 1
@@ -233,10 +233,10 @@ class FilterCore:
                     test_ratio=ratio)
             return False
         P_new = self.P - A
-        for i, g in self._partial:                 # D dx
-            dx[i] *= g
+        for i, g in self._partial:                 # D dx (element by element as Python floats: no NumPy scalars)
+            dx[i] = dx.item(i) * g
         for i, j, cc in self._schmidt:             # partial-update states: P_ij += (1-g_i)(1-g_j) A_ij
-            P_new[i, j] += cc * A.item(i, j)
+            P_new[i, j] = P_new.item(i, j) + cc * A.item(i, j)
         self.x, self.P = self.x + dx, P_new
         self.version += 1
         row.fused_now(t_us, innov, var, ratio)
