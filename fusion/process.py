@@ -53,6 +53,7 @@ _I_CLONE = S.idx("base_pos_ned")
 _I_BA = S.idx("accel_bias_b")
 _I_DELAY = S.att_delay.start
 _POS, _VEL, _BA = S.pos_ned, S.vel_ned, S.accel_bias_b
+_POS0, _VEL0, _BA0 = _POS.start, _VEL.start, _BA.start      # (plain ints for the per-prediction arithmetic)
 
 
 def _flat(rows: Any, cols: Any) -> NDArray[np.intp]:
@@ -196,7 +197,7 @@ def _propagate_into(x: Vec, T: float, moments: tuple[Any, ...], F: Mat, wind_dec
     floats go to NumPy with ``np.fromiter`` (a third of ``np.array``'s cost: no type discovery)."""
     ((u0, u1, u2), (w0, w1, w2), (z0, z1, z2)), ((a0, a1, a2), (e0, e1, e2), (d0, d1, d2)), dv, dq, k, j = moments
     xl = x.tolist() if xl is None else list(xl)
-    b0, b1, b2 = xl[_BA.start], xl[_BA.start + 1], xl[_BA.start + 2]
+    b0, b1, b2 = xl[_BA0], xl[_BA0 + 1], xl[_BA0 + 2]
     m0 = dv[0] - (u0 * b0 + u1 * b1 + u2 * b2)            # sum R (f - b) dt
     m1 = dv[1] - (w0 * b0 + w1 * b1 + w2 * b2)
     m2 = dv[2] - (z0 * b0 + z1 * b1 + z2 * b2)
@@ -214,7 +215,7 @@ def _propagate_into(x: Vec, T: float, moments: tuple[Any, ...], F: Mat, wind_dec
     c, s = math.cos(yb), math.sin(yb)                     # R_z(-yaw_bias) = [[c, s], [-s, c]]
     mn, me = c * m0 + s * m1, -s * m0 + c * m1            # velocity change without gravity, N/E
     qn, qe = c * q0 + s * q1, -s * q0 + c * q1            # position change beyond v T, without gravity, N/E
-    ip, iv = _POS.start, _VEL.start
+    ip, iv = _POS0, _VEL0
     vn, ve, vd = xl[iv], xl[iv + 1], xl[iv + 2]
     xl[ip] += vn * T + qn
     xl[ip + 1] += ve * T + qe
@@ -236,7 +237,7 @@ def _propagate_into(x: Vec, T: float, moments: tuple[Any, ...], F: Mat, wind_dec
         c * k[0] + s * k[1], -s * k[0] + c * k[1], k[2],  # d vel / d att_delay = R_z(-b) sum R (w x f) dt
     ), float, _N_F_IMU)
     if wind_decay != 1.0:                                 # turbulence relaxing to the mean (see ProcessModel)
-        iw, im = _I_WIND[0], _I_WMEAN[0]
+        iw, im = _WN, _MN
         xl[iw] = wind_decay * xl[iw] + (1.0 - wind_decay) * xl[im]
         xl[iw + 1] = wind_decay * xl[iw + 1] + (1.0 - wind_decay) * xl[im + 1]
     if wind_d_decay != 1.0:
