@@ -129,7 +129,8 @@ class FilterCore:
         self.x = x_new
         FPF = np.dot(F, self.P).dot(F.T)
         FPF += Q
-        P = FPF + FPF.T                  # (not P += P.T: NumPy would first copy the overlapping transpose)
+        P = FPF.T.copy()                 # (FPF' + FPF) / 2: the same sums as FPF + FPF', whose strided read of the
+        P += FPF                         # transpose costs more than this contiguous copy and in-place add
         P *= 0.5
         for i, q in add_var:
             P[i, i] = P.item(i, i) + q
