@@ -158,11 +158,11 @@ class FilterCore:
             return self._update_scalar(row, t_us, z[0] - m.z_hat[0], h, m, gate_nis)
         r = m.r
         PHt, hph_diag, Sm, innov = self._prior_terms(z, m)
-        var = tuple(Sm[i][i] for i in range(len(innov)))
+        var = tuple([Sm[i][i] for i in range(len(innov))])     # (list comprehensions: no generator frames)
         if not math.isfinite(sum(innov) + sum(map(sum, Sm))):
             row.set(t_us, rejected=True, reason=REASON_NUMERIC)
             return False
-        if any(v < -COV_RESET_REL_TOL * ri for v, ri in zip(hph_diag, r, strict=True)):
+        if any([v < -COV_RESET_REL_TOL * ri for v, ri in zip(hph_diag, r, strict=True)]):
             self._cov_reset(row, t_us, m.columns(), innov, var)
             return False
         white = (_whiten_2x2 if m.idx is None and len(innov) == 2 else _whiten)(Sm, innov)
@@ -176,7 +176,7 @@ class FilterCore:
             return False
         L = PHt.dot(CiT)                                  # L = P H' C^-T: L L' = P H' S^-1 H P; K_opt y = L C^-1 y
         check = float(np.vdot(L, L))                      # trace(A), whose finiteness is all that is asked
-        return self._commit(row, t_us, L.dot(np.array(w)), L.dot(L.T), check, innov, var, ratio)
+        return self._commit(row, t_us, L.dot(w), L.dot(L.T), check, innov, var, ratio)
 
     def _update_scalar(self, row: StatusRow, t_us: int, y: float, h: Vec, m: Linearised, gate_nis: float) -> bool:
         """:meth:`update` of a scalar measurement (innovation ``y``, Jacobian row ``h``): floats throughout."""
