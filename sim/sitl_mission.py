@@ -660,6 +660,7 @@ def _denied_figures(h: Path, tt: NDArray[np.float64], tn: NDArray[np.float64], t
                            "ap_heading_err_mean_deg": float(np.mean(hdg)) if hdg.size else None,
                            "ap_heading_err_mean_abs_deg": float(np.mean(np.abs(hdg))) if hdg.size else None,
                            "ap_heading_err_end_deg": float(hdg[-1]) if hdg.size else None,
+                           "ap_heading_err_max_abs_deg": float(np.max(np.abs(hdg))) if hdg.size else None,
                            "series_t_err_m_heading_err_deg": series}
     with contextlib.suppress(FileNotFoundError, ValueError):
         st = read_log(h / "statustext.csv")
@@ -689,7 +690,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--duration", type=float, default=600.0, help="GNSS-denied leg, autopilot seconds")
     ap.add_argument("--gnss-on-s", type=float, default=120.0, help="flight with GNSS after take-off")
     ap.add_argument("--speedup", type=float, default=2.0, help="SITL --speedup (the companion must keep up)")
-    ap.add_argument("--velocity-message", default="vision_position_delta",
+    ap.add_argument("--velocity-message", default=MissionSpec.velocity_message,
                     choices=("vision_position_delta", "vision_speed_estimate", "odometry"))
     ap.add_argument("--compare-dr", action="store_true", help="fly again with ArduPlane dead-reckoning alone")
     ap.add_argument("--no-extnav", action="store_true", help="only the dead-reckoning flight")
