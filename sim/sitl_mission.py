@@ -77,6 +77,8 @@ MAV_CMD_SET_MESSAGE_INTERVAL = 511
 ARDUPLANE_MODE_AUTO = 10
 FORCE_ARM_MAGIC = 21196
 PROCESS_START_TIMEOUT_S = 60.0
+SITL_CONNECT_TIMEOUT_S = 20.0  # ArduPlane SITL: its SERIAL0 open and accepting, else it is started again
+SITL_START_ATTEMPTS = 3
 EKF_READY_TIMEOUT_S = 120.0   # autopilot seconds for the EKF to use the GNSS after boot
 LIFTOFF_M = 2.0               # truth height over the ground that counts as airborne
 #: the SITL plane's airframe (ArduPilot libraries/SITL/SIM_Plane.h: the 2 kg model, last_letter's coefficients;
@@ -426,16 +428,14 @@ def fly_mission(spec: MissionSpec, out_dir: Path, seed: int = 0) -> dict[str, An
     if not ARDUPLANE.exists():
         raise FileNotFoundError(ARDUPLANE)
     out_dir.mkdir(parents=True, exist_ok=True)
-    inst = free_instance(np.random.default_rng([seed, os.getpid()]))  # flights at once: other ports
-    serial0 = SERIAL0_TCP_BASE + 10 * inst
+    rng = np.random.default_rng([seed, os.getpid()])  # flights at once: other instances, other ports
     companion_udp = free_port(socket.SOCK_DGRAM)
     parm = out_dir / "mission.parm"
     parm.write_text("".join(f"{k} {v}\n" for k, v in sitl_parameters(spec).items()))
     (out_dir / "spec.json").write_text(json.dumps(asdict(spec), indent=1))
     home = ",".join(str(v) for v in HOME)
     ap_cmd = [str(ARDUPLANE), "--model", "plane", "--speedup", f"{spec.speedup:g}", "--defaults",
-              f"{PLANE_PARM},{parm}", f"-I{inst}", "--home", home, "--serial1",
-              f"udpclient:127.0.0.1:{companion_udp}"]
+              f"{PLANE_PARM},{parm}", "--home", home, "--serial1", f"udpclient:127.0.0.1:{companion_udp}"]
     port_file = out_dir / "bridge" / "frame_port"
     bridge_cmd = [PY, "-m", "sim.sitl_camera", "--frame-hz",
                   f"{spec.frame_hz:g}", "--port-file", str(port_file), "--seed", str(seed)]
@@ -446,8 +446,7 @@ def fly_mission(spec: MissionSpec, out_dir: Path, seed: int = 0) -> dict[str, An
     runlog = RunLog(out_dir / "harness")
     ok = False
     try:
-        with started(ap_cmd, out_dir / "arduplane", out_dir / "arduplane.log", signal.SIGTERM):
-            gcs = GroundStation(f"tcp:127.0.0.1:{serial0}", runlog)
+        with arduplane_started(ap_cmd, out_dir, rng, runlog) as gcs:
             try:
                 gcs.wait_heartbeat(PROCESS_START_TIMEOUT_S)
                 gcs.request_rates(HARNESS_RATES)
@@ -473,7 +472,33 @@ def fly_mission(spec: MissionSpec, out_dir: Path, seed: int = 0) -> dict[str, An
     return metrics
 
 
-def _serial_port(sitl_log: Path, serial: int, timeout_s: float) -> int:
+@contextlib.contextmanager
+def arduplane_started(cmd: Sequence[str], out_dir: Path, rng: np.random.Generator, runlog: RunLog
+                      ) -> Iterator[GroundStation]:
+    """ArduPlane SITL (``cmd`` without its ``-I``) on a free instance, and the ground station connected to its
+    SERIAL0.  A SITL that exits, or whose SERIAL0 accepts no connection within :data:`SITL_CONNECT_TIMEOUT_S`
+    (seen a few times in a loaded test run: the port listening, every connection refused), is stopped and started
+    again on another instance, :data:`SITL_START_ATTEMPTS` times at most."""
+    log_path = out_dir / "arduplane.log"
+    for attempt in range(1, SITL_START_ATTEMPTS + 1):
+        inst = free_instance(rng)
+        with started([*cmd, f"-I{inst}"], out_dir / "arduplane", log_path, signal.SIGTERM) as p:
+            try:
+                port = _serial_port(log_path, 0, SITL_CONNECT_TIMEOUT_S, p)
+                gcs = GroundStation(f"tcp:127.0.0.1:{port}", runlog, SITL_CONNECT_TIMEOUT_S)
+            except (OSError, TimeoutError) as e:
+                tail = log_path.read_text(errors="replace").strip().splitlines()[-3:]
+                log.warning("ArduPlane SITL instance %d (attempt %d of %d): %s; its log ends %s", inst, attempt,
+                            SITL_START_ATTEMPTS, e, tail)
+                if attempt == SITL_START_ATTEMPTS:
+                    raise
+                continue
+            yield gcs
+            return
+
+
+def _serial_port(sitl_log: Path, serial: int, timeout_s: float, process: subprocess.Popen[bytes] | None = None
+                 ) -> int:
     """The TCP port the SITL opened for SERIAL``serial`` (its log says ``SERIALn on TCP port P``)."""
     pat = re.compile(rf"SERIAL{serial} on TCP port (\d+)")
     end = time.monotonic() + timeout_s
@@ -481,6 +506,8 @@ def _serial_port(sitl_log: Path, serial: int, timeout_s: float) -> int:
         m = pat.search(sitl_log.read_text(errors="replace")) if sitl_log.exists() else None
         if m:
             return int(m.group(1))
+        if process is not None and process.poll() is not None:
+            raise TimeoutError(f"the SITL exited ({process.returncode}) before it opened SERIAL{serial}")
         time.sleep(0.2)
     raise TimeoutError(f"the SITL opened no TCP port for SERIAL{serial} within {timeout_s:.0f} s")
 
