@@ -216,7 +216,7 @@ class OpticalConfig(Validated):
     att_rel_sigma_deg_per_s: Annotated[float, In(
         0.0, 30.0, doc="... plus this growth since the base, gyro bias (deg/s)")] = 0.12
     rel_rot_fallback_deg: Annotated[float, In(0.0, 180.0, doc="rotation assumed when a step has none (deg)")] = 10.0
-    min_height_m: Annotated[float, In(0.1, 1e4, doc="no optical fusion below this height above ground (m)")] = 5.0
+    min_height_m: Annotated[float, In(0.1, 1e4, doc="no optical fusion below this height above ground (m)")] = 20.0
 
     att_rel_sigma_rad = Radians("att_rel_sigma_deg")
     att_rel_sigma_rad_per_s = Radians("att_rel_sigma_deg_per_s")
