@@ -16,11 +16,12 @@ $(STAMP): pyproject.toml
 sim: $(STAMP)
 	$(VENV)/bin/gsoe sim --out out/sim --overwrite
 
-# two workers (pytest-xdist), one test file each at a time: the SIL tests wait on real time while the other core
+# two workers (pytest-xdist), one test file each at a time, in the order tests/conftest.py gives (the long files
+# first): the SIL tests wait on real time while the other core
 # computes; TEST_WORKERS=0 runs them in one process
 TEST_WORKERS ?= 2
 test: $(STAMP)
-	$(VENV)/bin/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile
+	$(VENV)/bin/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check common gsoe fusion pipeline nav sim cli tests
