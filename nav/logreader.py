@@ -56,11 +56,10 @@ Clock
 Airspeed
     ArduPilot logs equivalent airspeed (EAS); ``tas_m_s = eas_m_s * sqrt(rho0 / rho)`` with the density at the
     logged static pressure and the air temperature ArduPilot's EKF assumes for the same conversion: the baro's own
-    temperature, at most :data:`BARO_AIR_TEMP_MAX_C` (a board's baro reads up to 30 K above the air, self-heated:
-    55 C on the ALFA logs), at the log's lowest altitude, less the ISA lapse rate above it (``ReadReport.air_temp_c``;
-    10 K is 1.7 % of TAS: the ISA temperature, 12.7 C at the ALFA field, made the ALFA TAS 2.2 % lower than the
-    autopilot's).  Without a baro temperature the ISA atmosphere's; without a logged pressure ``tas_m_s = eas_m_s``
-    and the report says so.
+    temperature, at most :data:`BARO_AIR_TEMP_MAX_C` (a board's baro reads high, self-heated), at the log's lowest
+    altitude, less the ISA lapse rate above it (``ReadReport.air_temp_c``; 10 K is 1.7 % of TAS; docs/real-data.md).
+    Without a baro temperature the ISA atmosphere's; without a logged pressure ``tas_m_s = eas_m_s`` and the report
+    says so.
 Bad input
     Truncated or corrupt logs give what was readable and a :class:`ReadReport` whose ``warnings`` say what was
     lost; a file with nothing readable gives no samples and a warning.  An unknown extension raises

@@ -54,9 +54,7 @@ table overrides the EKF's on top)
     (the log's airframe is not the simulator's) and GNSS position as white noise (docs/real-data.md; what a log says
     about these: :mod:`nav.replay_checks`).
     GNSS samples are moved back by ``replay.gnss_delay_s`` (0.2 s, ArduPilot's default GPS lag): logged fixes carry
-    the time they reached the autopilot; on the ALFA log the wind triangle ``v_gnss - tas * heading`` varies least
-    with the GNSS velocity taken 0.15-0.2 s earlier than its stamp, and the autopilot's own position lies on the
-    fixes 0.24 s earlier.
+    the time they reached the autopilot (docs/real-data.md: what the ALFA log says of the lag).
 
 Wind against the autopilot
     The EKF's wind (velocity of the air, N/E) is interpolated to the time of every autopilot wind sample (MAVLink

@@ -19,20 +19,20 @@ the EKF's estimate and its aid sources' status records, each test with a named t
     airspeed, optical, GNSS velocity) was refused by its innovation gate, none fused, and at least
     ``guard_min_failing_sources`` of them were refused: every such sensor disagrees with the state, so the state
     is what is wrong (one source refused alone is that source's fault, which its gate is there for).  The velocity
-    is what the IMU's errors go into first; the other sources go on fusing while it is wrong (in the tests, with
-    the velocity 9.6 m/s off: the baro, the GNSS position, whose error grows slowly, and the sideslip and angle of
-    attack, which see only the direction of the air velocity), so they do not count.
+    is what the IMU's errors go into first; the other sources go on fusing while it is wrong (the baro, the GNSS
+    position, whose error grows slowly, the sideslip and angle of attack, which see only the air velocity's
+    direction), so they do not count.
 ``GNSS velocity refused``
     for ``guard_all_fail_s`` every GNSS velocity was refused by its gate, none fused.  The pipeline fuses GNSS only
     while it is enabled (the companion: while its GNSS monitor says the receiver is healthy), so the state is what
-    is wrong, even when another aid still agrees with it (in a fuzz flight with the plausibility tests off, spoofed
-    IMU samples had corrupted the optical estimator's gyro-bias filter too, and its steps agreed with a velocity
-    14 m/s off); the EKF's own reset to GNSS (``[ekf] gnss.reset_after_s``) would come only after 5 s.
+    is wrong, even when another aid still agrees with it (corrupted IMU samples can corrupt the optical
+    estimator's gyro bias too; docs/pipeline.md); the EKF's own reset to GNSS (``[ekf] gnss.reset_after_s``) comes
+    later.
 
 From the first such refusal on (the first refused GNSS velocity, or the refusals of at least
 ``guard_min_failing_sources`` velocity aids, none fused since), the state is *suspect*
-(:attr:`DivergenceGuard.suspect`): its estimate is not valid (a velocity 9.6 m/s off was otherwise sent as valid for
-the second the test takes), and it is valid again as soon as one of them fuses.
+(:attr:`DivergenceGuard.suspect`): its estimate is not valid until the test's time has passed, and it is valid again
+as soon as one of them fuses.
 
 The bounds are checked on every estimate handed out (:meth:`DivergenceGuard.bounds`, a few comparisons: an estimate
 beyond them is never valid); the whole test with the aid records runs when the pipeline records the estimate

@@ -477,8 +477,8 @@ def arduplane_started(cmd: Sequence[str], out_dir: Path, rng: np.random.Generato
                       ) -> Iterator[GroundStation]:
     """ArduPlane SITL (``cmd`` without its ``-I``) on a free instance, and the ground station connected to its
     SERIAL0.  A SITL that exits, or whose SERIAL0 accepts no connection within :data:`SITL_CONNECT_TIMEOUT_S`
-    (seen a few times in a loaded test run: the port listening, every connection refused), is stopped and started
-    again on another instance, :data:`SITL_START_ATTEMPTS` times at most."""
+    (seen in two-worker test runs: the port listening, every connection refused), is stopped and started again on
+    another instance, :data:`SITL_START_ATTEMPTS` times at most."""
     log_path = out_dir / "arduplane.log"
     for attempt in range(1, SITL_START_ATTEMPTS + 1):
         inst = free_instance(rng)
