@@ -19,7 +19,7 @@ baro       SCALED_PRESSURE (ISA pressure altitude); ALTITUDE    :class:`common.s
 airspeed   VFR_HUD ``airspeed``: ArduPilot's equivalent         :class:`common.samples.AirspeedSample` (true
            airspeed (PX4: calibrated), made true with the air   airspeed, with the EAS it came from)
            density of the last baro pressure and temperature
-           (``air_temperature``: :func:`true_airspeed_m_s`)
+           (``air_temperature``: :mod:`common.atmosphere`)
 GNSS       GPS_RAW_INT (fix type, satellites, accuracy and      :class:`common.samples.GnssSample`
            velocity in one message)
 home       GLOBAL_POSITION_INT (``alt - relative_alt``)         :class:`HomeReading`
@@ -101,6 +101,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from common.angles import wrap_360
+from common.atmosphere import (
+    ARDUPILOT_BARO_TEMP_CLAMP_C,
+    GroundAir,
+    eas_to_tas_ratio,
+    isa_pressure_pa,
+    pressure_altitude_m,
+)
 from common.config import In, Validated, require
 from common.samples import AirspeedSample, AttitudeSample, BaroSample, GnssSample, ImuSample
 from gsoe.rotation import R_nb_from_euler
@@ -115,14 +122,7 @@ MAX_ACCEL_M_S2 = 16.0 * 9.80665  # 16 g accelerometer range
 MAX_AIRSPEED_M_S = 150.0
 ALT_RANGE_M = (-500.0, 20000.0)
 MAX_PITCH_RAD = math.pi / 2
-ISA_P0_HPA = 1013.25
-ISA_T0_K = 288.15
-ISA_LAPSE_K_M = 0.0065
-ISA_EXP = 5.25588
 EARTH_RADIUS_M = 6371008.8
-R_AIR_J_KG_K = 287.05          # specific gas constant of dry air
-RHO0_KG_M3 = 1.225             # ISA sea-level density: EAS = TAS sqrt(rho / RHO0)
-CELSIUS_TO_KELVIN = 273.15
 GRAVITY_M_S2 = 9.80665
 MAV_COMP_ID_ONBOARD_COMPUTER = 191
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
@@ -174,9 +174,9 @@ class LinkConfig(Validated):
     ``source_timeout_s``: a kind's less preferred message is used only after its preferred one has been silent this
     long; ``raw_imu_accel_scale_m_s2``/``raw_imu_gyro_scale_rad_s``: the RAW_IMU units (ArduPilot: mG and mrad/s);
     ``air_temperature``: the temperature of the air density that makes VFR_HUD's equivalent airspeed true, the
-    baro's (SCALED_PRESSURE ``temperature``: what ArduPilot's SITL simulates the pitot with; on a real board it reads
-    the warm board) or the ISA's at the pressure altitude; ``max_clock_ahead_s``: a stamp mapping this far beyond
-    the newest one is refused (a message on another time base).
+    baro's as ArduPilot takes it (:mod:`common.atmosphere`: at the lowest altitude seen, at most
+    ``baro_temp_clamp_c``, the ISA lapse above) or the ISA's at the pressure altitude; ``max_clock_ahead_s``: a
+    stamp mapping this far beyond the newest one is refused (a message on another time base).
 
     Velocity output (module docstring): ``velocity_message``; ``ap_vis_verr_min_m_s``/``ap_vis_verr_max_m_s``
     mirror ArduPilot's ``EK3_VIS_VERR_MIN``/``EK3_VIS_VERR_MAX`` (the range VISION_POSITION_DELTA's confidence
@@ -220,6 +220,7 @@ class LinkConfig(Validated):
     raw_imu_accel_scale_m_s2: Annotated[float, In(0.0, 1.0, lo_open=True)] = GRAVITY_M_S2 / 1000.0
     raw_imu_gyro_scale_rad_s: Annotated[float, In(0.0, 1.0, lo_open=True)] = 1e-3
     air_temperature: Literal["baro", "isa"] = "baro"
+    baro_temp_clamp_c: Annotated[float, In(-40.0, 85.0)] = ARDUPILOT_BARO_TEMP_CLAMP_C
     max_clock_ahead_s: Annotated[float, In(0.0, 3600.0, lo_open=True)] = 2.0
 
     def __post_init__(self) -> None:
@@ -554,22 +555,6 @@ class LinkClock:
         return t_us - (self.offset_us or 0)
 
 
-def pressure_altitude_m(pressure_hpa: float) -> float:
-    return ISA_T0_K / ISA_LAPSE_K_M * (1.0 - (pressure_hpa / ISA_P0_HPA) ** (1.0 / ISA_EXP))
-
-
-def isa_temperature_k(pressure_pa: float) -> float:
-    """The ISA temperature at the pressure altitude of ``pressure_pa``."""
-    return ISA_T0_K - ISA_LAPSE_K_M * pressure_altitude_m(pressure_pa / 100.0)
-
-
-def true_airspeed_m_s(eas_m_s: float, pressure_pa: float, temperature_k: float) -> float:
-    """True airspeed of the equivalent airspeed ``eas_m_s`` in air of ``pressure_pa`` and ``temperature_k``:
-    ``TAS = EAS sqrt(rho0 / rho)``, ``rho = p / (R T)`` (ArduPilot's EAS2TAS; 3 % at 700 m in the ISA)."""
-    rho = pressure_pa / (R_AIR_J_KG_K * temperature_k)
-    return eas_m_s * math.sqrt(RHO0_KG_M3 / rho)
-
-
 def _finite(*values: object) -> bool:
     """Whether every value is a finite number (telemetry fields may be anything a sender put there)."""
     return all(isinstance(v, int | float) and math.isfinite(v) for v in values)
@@ -620,7 +605,7 @@ class TelemetryGuard:
         self._kind_of = {name: kind for kind, names in SOURCES.items() for name in names}
         self.used: dict[str, str] = {}  # kind -> the message in use
         self._pressure_pa = math.nan
-        self._temperature_k = math.nan
+        self._ground_air = GroundAir(self.cfg.baro_temp_clamp_c)
         self._back: dict[str, list[int]] = {}
 
     def _reject(self, kind: str, reason: str) -> None:
@@ -762,7 +747,7 @@ class TelemetryGuard:
             return None
         amsl = _field(f, "altitude_amsl")
         if not math.isfinite(self._pressure_pa) and math.isfinite(amsl):
-            self._pressure_pa = 100.0 * ISA_P0_HPA * (1.0 - ISA_LAPSE_K_M * amsl / ISA_T0_K) ** ISA_EXP
+            self._pressure_pa = isa_pressure_pa(amsl)
         t = self._stamp("baro", int(f["time_usec"]))
         if t is None:
             return None
@@ -774,7 +759,7 @@ class TelemetryGuard:
         if math.isfinite(p_hpa) and p_hpa > 0.0:
             self._pressure_pa = 100.0 * p_hpa
         if math.isfinite(t_cdeg) and -8000.0 < t_cdeg < 8000.0:
-            self._temperature_k = t_cdeg / 100.0 + CELSIUS_TO_KELVIN
+            self._ground_air.update(self._pressure_pa, t_cdeg / 100.0)
 
     def _air_from_highres(self, f: dict[str, Any]) -> None:
         upd = int(f.get("fields_updated") or 0)
@@ -783,24 +768,27 @@ class TelemetryGuard:
                 "baro", {}):
             self._pressure_pa = 100.0 * p_hpa
             if upd & (1 << 12) and math.isfinite(t_c) and -80.0 < t_c < 80.0:
-                self._temperature_k = t_c + CELSIUS_TO_KELVIN
+                self._ground_air.update(self._pressure_pa, t_c)
 
-    def air_temperature_k(self) -> float:
-        """The temperature the airspeed is made true with (``air_temperature``), nan when not known yet."""
-        if self.cfg.air_temperature == "isa" or not math.isfinite(self._temperature_k):
-            return isa_temperature_k(self._pressure_pa) if math.isfinite(self._pressure_pa) else math.nan
-        return self._temperature_k
+    def eas_to_tas(self) -> float:
+        """``sqrt(rho0 / rho)`` at the last baro pressure (``air_temperature``; :mod:`common.atmosphere`), nan
+        before the first baro report."""
+        if not math.isfinite(self._pressure_pa):
+            return math.nan
+        if self.cfg.air_temperature == "isa" or not math.isfinite(self._ground_air.pressure_pa):
+            return float(eas_to_tas_ratio(self._pressure_pa))
+        return self._ground_air.ratio(self._pressure_pa)
 
     def airspeed_eas(self, eas_m_s: float, vehicle_us: int = 0) -> AirspeedSample | None:
         """An equivalent airspeed (VFR_HUD) made true with the air density of the last baro report."""
         if not (isinstance(eas_m_s, int | float) and math.isfinite(eas_m_s)):
             self._reject("airspeed", "not finite")
             return None
-        temp_k = self.air_temperature_k()
-        if not (math.isfinite(self._pressure_pa) and math.isfinite(temp_k)):
+        ratio = self.eas_to_tas()
+        if not math.isfinite(ratio):
             self._reject("airspeed", "no air density yet (no baro)")
             return None
-        tas = true_airspeed_m_s(float(eas_m_s), self._pressure_pa, temp_k)
+        tas = float(eas_m_s) * ratio
         s = self.airspeed(tas, vehicle_us)
         return AirspeedSample(s.t_us, s.tas_m_s, float(eas_m_s)) if s is not None else None
 
@@ -845,7 +833,7 @@ class TelemetryGuard:
 
     def baro(self, pressure_hpa: float, vehicle_us: int) -> BaroSample | None:
         usable = _finite(pressure_hpa) and pressure_hpa > 0.0
-        alt = pressure_altitude_m(pressure_hpa) if usable else math.nan
+        alt = float(pressure_altitude_m(100.0 * pressure_hpa)) if usable else math.nan
         t = self._accept("baro", vehicle_us, usable, lambda: ALT_RANGE_M[0] <= alt <= ALT_RANGE_M[1],
                          unusable="not finite or not positive")
         return None if t is None else BaroSample(t, alt, pressure_pa=float(pressure_hpa) * 100.0)

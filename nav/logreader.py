@@ -56,8 +56,9 @@ Clock
 Airspeed
     ArduPilot logs equivalent airspeed (EAS); ``tas_m_s = eas_m_s * sqrt(rho0 / rho)`` with the density at the
     logged static pressure and the air temperature ArduPilot's EKF assumes for the same conversion: the baro's own
-    temperature, at most :data:`BARO_AIR_TEMP_MAX_C` (a board's baro reads high, self-heated), at the log's lowest
-    altitude, less the ISA lapse rate above it (``ReadReport.air_temp_c``; 10 K is 1.7 % of TAS; docs/real-data.md).
+    temperature, at most ``baro_temp_clamp_c`` (a board's baro reads high, self-heated), at the log's lowest
+    altitude, less the ISA lapse rate above it (:mod:`common.atmosphere`, the live link's policy too;
+    ``ReadReport.air_temp_c``; 10 K is 1.7 % of TAS; docs/real-data.md).
     Without a baro temperature the ISA atmosphere's; without a logged pressure ``tas_m_s = eas_m_s`` and the report
     says so.
 Bad input
@@ -89,6 +90,13 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import theilslopes
 
 from common.angles import wrap_2pi, wrap_pi
+from common.atmosphere import (
+    ARDUPILOT_BARO_TEMP_CLAMP_C,
+    KELVIN_AT_0_C,
+    baro_air_temperature_k,
+    eas_to_tas_ratio,
+    pressure_altitude_m,
+)
 from common.samples import AirspeedSample, AttitudeSample, BaroSample, GnssSample, ImuSample
 
 log = logging.getLogger(__name__)
@@ -97,11 +105,6 @@ log = logging.getLogger(__name__)
 # Constants (units in the names)
 
 G0_M_S2 = 9.80665  #: standard gravity; ArduPilot's milli-g scale factor (GRAVITY_MSS)
-ISA_P0_PA = 101325.0  #: ISA sea-level pressure
-ISA_T0_K = 288.15  #: ISA sea-level temperature
-ISA_LAPSE_K_M = 0.0065  #: ISA temperature lapse rate in the troposphere
-ISA_R_J_KG_K = 287.053  #: specific gas constant of dry air
-ISA_RHO0_KG_M3 = ISA_P0_PA / (ISA_R_J_KG_K * ISA_T0_K)  #: ISA sea-level density
 WGS84_A_M = 6378137.0  #: WGS-84 semi-major axis
 WGS84_E2 = 6.69437999014e-3  #: WGS-84 first eccentricity squared
 #: A MAVLink ``time_usec`` above this is UNIX time (after 2001-09-09), not time since boot.
@@ -113,10 +116,6 @@ MAX_TRANSPORT_DELAY_US = 10_000_000
 CLOCK_EARLY_TOL_US = 200_000
 #: Window of receive time over which the minimum of ``receive - stamp`` is taken (longer than a link's bursts).
 CLOCK_WINDOW_S = 10.0
-#: The air temperature taken from a baro's own temperature is at most this (ArduPilot's AP_Baro calibration
-#: temperature: the baro reads high, self-heated, often by 30 K).
-BARO_AIR_TEMP_MAX_C = 25.0
-KELVIN_AT_0_C = 273.15
 #: Undecodable tlog frames above this fraction of all frames earn a warning (the ALFA logs have about 1 %).
 BAD_FRAME_WARN_FRACTION = 0.05
 GPS_FIX_TYPE_3D = 3  #: MAVLink GPS_FIX_TYPE_3D_FIX; DataFlash GPS.Status and ULog fix_type use the same numbers
@@ -211,24 +210,6 @@ class FlightLog:
 # Physics helpers
 
 
-def isa_pressure_altitude_m(pressure_pa: NDArray[np.float64] | float) -> NDArray[np.float64]:
-    """ISA pressure altitude (m) of a static pressure (troposphere)."""
-    expo = ISA_R_J_KG_K * ISA_LAPSE_K_M / G0_M_S2
-    return ISA_T0_K / ISA_LAPSE_K_M * (1.0 - (np.asarray(pressure_pa, dtype=float) / ISA_P0_PA) ** expo)
-
-
-def eas_to_tas_ratio(pressure_pa: NDArray[np.float64] | float,
-                     ground: tuple[float, float] | None = None) -> NDArray[np.float64]:
-    """``sqrt(rho0 / rho)`` at the given static pressure: with the ISA atmosphere's temperature, or with ``ground =
-    (pressure_pa, temperature_k)`` that temperature at that pressure less the ISA lapse rate above it."""
-    p = np.asarray(pressure_pa, dtype=float)
-    if ground is None:
-        temp_k = ISA_T0_K - ISA_LAPSE_K_M * isa_pressure_altitude_m(p)
-    else:
-        temp_k = ground[1] - ISA_LAPSE_K_M * (isa_pressure_altitude_m(p) - isa_pressure_altitude_m(ground[0]))
-    return np.sqrt(ISA_RHO0_KG_M3 / (p / (ISA_R_J_KG_K * temp_k)))
-
-
 def local_ned_m(lat_deg: NDArray[np.float64], lon_deg: NDArray[np.float64], alt_m: NDArray[np.float64],
                 origin: tuple[float, float, float]) -> NDArray[np.float64]:
     """Flat-earth local NED (m), shape (N, 3), of geodetic points relative to ``origin = (lat, lon, alt)``.
@@ -277,7 +258,7 @@ def _finite_split(records: list[tuple[int, tuple[float, ...]]], what: str,
     return good
 
 
-def _assemble(path: Path, fmt: str, raw: _Raw) -> FlightLog:
+def _assemble(path: Path, fmt: str, raw: _Raw, baro_temp_clamp_c: float) -> FlightLog:
     warnings = list(raw.warnings)
     imu = _finite_split(raw.imu, "IMU", warnings)
     att = _finite_split(raw.att, "attitude", warnings)
@@ -317,8 +298,8 @@ def _assemble(path: Path, fmt: str, raw: _Raw) -> FlightLog:
                             "airspeed")
         ground: tuple[float, float] | None = None
         if needs_eas2tas and len(p_t) and baro_temp_c:
-            air_temp_c = min(float(np.median(baro_temp_c)), BARO_AIR_TEMP_MAX_C)
-            ground = (float(np.max(p_v)), air_temp_c + KELVIN_AT_0_C)
+            ground = (float(np.max(p_v)), baro_air_temperature_k(float(np.median(baro_temp_c)), baro_temp_clamp_c))
+            air_temp_c = ground[1] - KELVIN_AT_0_C
         for t, v in air:
             if v[1]:
                 add(2, AirspeedSample(t_us=t - t0, tas_m_s=v[0], eas_m_s=math.nan))
@@ -326,7 +307,7 @@ def _assemble(path: Path, fmt: str, raw: _Raw) -> FlightLog:
                 ratio = float(eas_to_tas_ratio(np.interp(t, p_t, p_v), ground)) if len(p_t) else 1.0
                 add(2, AirspeedSample(t_us=t - t0, tas_m_s=v[0] * ratio, eas_m_s=v[0]))
     for t, v in baro:
-        add(3, BaroSample(t_us=t - t0, alt_m=float(isa_pressure_altitude_m(v[0])), pressure_pa=v[0]))
+        add(3, BaroSample(t_us=t - t0, alt_m=float(pressure_altitude_m(v[0])), pressure_pa=v[0]))
     if gnss:
         arr = np.array([v for _, v in gnss], dtype=float)
         fix = (arr[:, 6] >= GPS_FIX_TYPE_3D) & np.all(np.isfinite(arr[:, :3]), axis=1) & (
@@ -411,7 +392,7 @@ def _tlog_values(mtype: str, m: Any) -> tuple[float, ...] | None:
     return None
 
 
-def read_tlog(path: Path) -> FlightLog:
+def read_tlog(path: Path, baro_temp_clamp_c: float = ARDUPILOT_BARO_TEMP_CLAMP_C) -> FlightLog:
     from pymavlink import mavutil
 
     raw = _Raw()
@@ -424,7 +405,7 @@ def read_tlog(path: Path) -> FlightLog:
         conn = mavutil.mavlogfile(str(path), robust_parsing=True)
     except Exception as e:  # noqa: BLE001 - any failure of the third-party parser becomes a warning
         raw.warnings.append(f"cannot open as a MAVLink log: {e}")
-        return _assemble(path, "tlog", raw)
+        return _assemble(path, "tlog", raw, baro_temp_clamp_c)
     try:
         while True:
             try:
@@ -502,7 +483,7 @@ def read_tlog(path: Path) -> FlightLog:
     for mtype, (_, name) in targets.items():
         if mtype in present:
             raw.sources[name] = mtype
-    return _assemble(path, "tlog", raw)
+    return _assemble(path, "tlog", raw, baro_temp_clamp_c)
 
 
 class _ClockFit:
@@ -635,7 +616,7 @@ def _df_time_us(m: Any) -> int | None:
     return None
 
 
-def read_dataflash(path: Path) -> FlightLog:
+def read_dataflash(path: Path, baro_temp_clamp_c: float = ARDUPILOT_BARO_TEMP_CLAMP_C) -> FlightLog:
     from pymavlink import DFReader
 
     raw = _Raw()
@@ -666,7 +647,7 @@ def read_dataflash(path: Path) -> FlightLog:
                 raw.wind.extend(winds[name])
                 raw.sources["AutopilotWind"] = f"{name}.VWN/VWE"
                 break
-    return _assemble(path, "dataflash", raw)
+    return _assemble(path, "dataflash", raw, baro_temp_clamp_c)
 
 
 def _df_record(m: Any, raw: _Raw, winds: dict[str, list[tuple[int, tuple[float, ...]]]]) -> bool:
@@ -729,7 +710,7 @@ _ULOG_TOPICS = ["sensor_combined", "vehicle_attitude", "vehicle_air_data", "airs
                 "vehicle_gps_position", "sensor_gps", "wind", "wind_estimate"]
 
 
-def read_ulog(path: Path) -> FlightLog:
+def read_ulog(path: Path, baro_temp_clamp_c: float = ARDUPILOT_BARO_TEMP_CLAMP_C) -> FlightLog:
     from pyulog import ULog
 
     raw = _Raw()
@@ -738,7 +719,7 @@ def read_ulog(path: Path) -> FlightLog:
             ulog = ULog(str(path), message_name_filter_list=_ULOG_TOPICS)
         except Exception as e:  # noqa: BLE001 - any failure of the third-party parser becomes a warning
             raw.warnings.append(f"not a readable ULog file: {e}")
-            return _assemble(path, "ulog", raw)
+            return _assemble(path, "ulog", raw, baro_temp_clamp_c)
     if ulog.file_corruption:
         raw.warnings.append("ULog file corruption detected (truncated or damaged): the readable part is used")
     tail = _ulog_tail_bytes(path)
@@ -786,7 +767,7 @@ def read_ulog(path: Path) -> FlightLog:
          lambda d: np.column_stack([
              np.arctan2(-np.asarray(d["windspeed_east"], dtype=float), -np.asarray(d["windspeed_north"], dtype=float)),
              np.hypot(np.asarray(d["windspeed_north"], dtype=float), np.asarray(d["windspeed_east"], dtype=float))]))
-    return _assemble(path, "ulog", raw)
+    return _assemble(path, "ulog", raw, baro_temp_clamp_c)
 
 
 _ULOG_HEADER_BYTES = 16  # magic (7), version (1), start timestamp (8)
@@ -837,11 +818,11 @@ def _ulog_gnss(d: dict[str, NDArray[Any]]) -> NDArray[np.float64]:
 # --------------------------------------------------------------------------------------------------------------
 # Entry point
 
-_READERS: dict[str, Callable[[Path], FlightLog]] = {"tlog": read_tlog, "dataflash": read_dataflash,
+_READERS: dict[str, Callable[[Path, float], FlightLog]] = {"tlog": read_tlog, "dataflash": read_dataflash,
                                                      "ulog": read_ulog}
 
 
-def read_log(path: str | Path) -> FlightLog:
+def read_log(path: str | Path, baro_temp_clamp_c: float = ARDUPILOT_BARO_TEMP_CLAMP_C) -> FlightLog:
     """Read a ``.tlog``, ``.bin`` or ``.ulg`` flight log (see the module docstring).
 
     Raises ``FileNotFoundError`` for a missing file and :class:`LogFormatError` for an unknown extension or a
@@ -857,8 +838,8 @@ def read_log(path: str | Path) -> FlightLog:
         raise LogFormatError(f"{p}: not a regular file")
     if p.stat().st_size == 0:
         raw = _Raw(warnings=["the file is empty"])
-        return _assemble(p, fmt, raw)
-    result = _READERS[fmt](p)
+        return _assemble(p, fmt, raw, baro_temp_clamp_c)
+    result = _READERS[fmt](p, baro_temp_clamp_c)
     for w in result.report.warnings:
         log.warning("%s: %s", p.name, w)
     return result

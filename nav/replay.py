@@ -91,6 +91,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from common import metrics as M
 from common.angles import angle_diff
+from common.atmosphere import ARDUPILOT_3_BARO_TEMP_CLAMP_C
 from common.config import ConfigError, In, Validated, build, require
 from common.logio import RunLog
 from common.samples import AttitudeSample, GsoeStep, ImuSample, MatchQuality
@@ -135,6 +136,8 @@ class ReplayConfig(Validated):
     ``max_camera_height_m``: the virtual camera produces no frame below the first; a take-off reference that puts
     the flight outside [min, max] is implausible and replaced by the assumption.  ``optical_sigma_px``: one-sigma
     pixel noise per axis added to each synthetic step (0: the EKF's optical noise model for that step).
+    ``baro_temp_clamp_c``: the log's firmware's clamp of the baro temperature taken as air temperature
+    (:mod:`common.atmosphere`; the shared ALFA logs are ArduPilot 3.x: 25 degC).
     """
 
     wind_settle_s: Annotated[float, In(0.0, 3600.0)] = 20.0
@@ -147,6 +150,7 @@ class ReplayConfig(Validated):
     min_camera_height_m: Annotated[float, In(0.1, 10000.0)] = 10.0
     max_camera_height_m: Annotated[float, In(1.0, 100000.0)] = 3000.0
     optical_sigma_px: Annotated[float, In(0.0, 100.0)] = 0.0
+    baro_temp_clamp_c: Annotated[float, In(-40.0, 85.0)] = ARDUPILOT_3_BARO_TEMP_CLAMP_C
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -448,7 +452,7 @@ def run_replay(log_path: str | Path, *, out_dir: str | Path | None = None, confi
     if gnss_off_at_s is not None and not math.isfinite(gnss_off_at_s):
         raise ReplayError(f"--gnss-off-at must be a finite number of seconds, got {gnss_off_at_s!r}")
 
-    flight = read_log(log_path)
+    flight = read_log(log_path, rcfg.baro_temp_clamp_c)
     report = flight.report
     warnings = list(report.warnings)
     what = f"{Path(log_path).name}"

@@ -153,7 +153,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING)
     from nav.replay import ReplayConfig, run_replay
 
-    flight = read_log(args.log)
+    flight = read_log(args.log, ReplayConfig().baro_temp_clamp_c)
     gnss, air, att = flight.of_type(GnssSample), flight.of_type(AirspeedSample), flight.of_type(AttitudeSample)
     delay_s = ReplayConfig().gnss_delay_s
     dn, de = gnss_velocity_drift_m_s(gnss)

@@ -95,6 +95,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from common.angles import angle_diff, wrap_2pi, wrap_360, wrap_pi
+from common.atmosphere import KELVIN_AT_0_C, LAPSE_K_M, RHO0_KG_M3, T0_K, eas_to_tas_ratio, isa_pressure_pa
 from common.framestream import encode_frame
 from common.samples import AirspeedSample, AttitudeSample, BaroSample, GnssSample, ImuSample
 from sim.sensors import CameraFrame, SensorReadings
@@ -107,11 +108,6 @@ log = logging.getLogger(__name__)
 
 GRAVITY_M_S2 = 9.80665
 EARTH_RADIUS_M = 6371008.8  # mean Earth radius: local flat-earth conversion of NED offsets to lat/lon
-ISA_P0_HPA = 1013.25
-ISA_T0_K = 288.15
-ISA_LAPSE_K_M = 0.0065
-ISA_EXP = 5.25588
-AIR_DENSITY_KG_M3 = 1.225
 ARDUPLANE_MODE_GUIDED = 15
 ARDUPLANE_MODE_AUTO = 10
 MAV_RESULT_ACCEPTED = 0
@@ -435,17 +431,22 @@ def lat_lon_to_ne(lat_deg: float, lon_deg: float, ref_lat_deg: float, ref_lon_de
 
 
 def isa_pressure_hpa(alt_amsl_m: float) -> float:
-    return ISA_P0_HPA * (1.0 - ISA_LAPSE_K_M * alt_amsl_m / ISA_T0_K) ** ISA_EXP
+    return isa_pressure_pa(alt_amsl_m) / 100.0
 
 
-BARO_TEMPERATURE_CDEG = 2000  # SCALED_PRESSURE temperature (20 degC)
+AIR_ISA_OFFSET_K = 5.0  # the vehicle's air: ISA + 5 K (20 degC at sea level), the ISA lapse above
+
+
+def air_temperature_k(alt_amsl_m: float) -> float:
+    """The air temperature the vehicle flies in and its baro reports (SCALED_PRESSURE ``temperature``)."""
+    return T0_K - LAPSE_K_M * alt_amsl_m + AIR_ISA_OFFSET_K
 
 
 def eas_per_tas(alt_amsl_m: float) -> float:
-    """Equivalent over true airspeed in the air the vehicle reports (ISA pressure at ``alt_amsl_m``, temperature
-    :data:`BARO_TEMPERATURE_CDEG`): VFR_HUD carries the equivalent airspeed, as ArduPilot's does."""
-    rho = isa_pressure_hpa(alt_amsl_m) * 100.0 / (287.05 * (BARO_TEMPERATURE_CDEG / 100.0 + 273.15))
-    return math.sqrt(rho / AIR_DENSITY_KG_M3)
+    """Equivalent over true airspeed in the air the vehicle reports (ISA pressure and :func:`air_temperature_k` at
+    ``alt_amsl_m``): VFR_HUD carries the equivalent airspeed, as ArduPilot's does."""
+    p_pa = isa_pressure_pa(alt_amsl_m)
+    return 1.0 / float(eas_to_tas_ratio(p_pa, (p_pa, air_temperature_k(alt_amsl_m))))
 
 
 def _finite(*vals: Any) -> bool:
@@ -830,9 +831,9 @@ class MavlinkVehicle:
         if self._baro is not None and self._due("SCALED_PRESSURE", t):
             tas = self._tas.tas_m_s if self._tas is not None else tr.tas_m_s
             press = (math.nan, math.inf, BAD_PRESSURE_HPA)[bad_kind] if bad else isa_pressure_hpa(alt_amsl)
-            q_hpa = 0.5 * AIR_DENSITY_KG_M3 * tas**2 / 100.0
-            self._send(m.scaled_pressure_encode(max((self._baro.t_us + off) // 1000, 0), press, q_hpa,
-                                                BARO_TEMPERATURE_CDEG))
+            q_hpa = 0.5 * RHO0_KG_M3 * tas**2 / 100.0
+            temp_cdeg = int(round(100.0 * (air_temperature_k(alt_amsl) - KELVIN_AT_0_C)))
+            self._send(m.scaled_pressure_encode(max((self._baro.t_us + off) // 1000, 0), press, q_hpa, temp_cdeg))
         gs = float(np.hypot(*tr.vel_ned_m_s[:2]))
         if self._tas is not None and self._due("VFR_HUD", t):
             tas = (math.nan, -math.inf, BAD_AIRSPEED_M_S)[bad_kind] if bad else self._tas.tas_m_s

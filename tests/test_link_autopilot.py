@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from common.atmosphere import eas_to_tas_ratio, pressure_altitude_m
 from common.samples import AirspeedSample, AttitudeSample, BaroSample, ImuSample
 from gsoe.rotation import R_nb_from_euler
 from nav.link import (
@@ -28,7 +29,6 @@ from nav.link import (
     encode_outputs,
     quat_from_euler,
     rates_text,
-    true_airspeed_m_s,
     vision_confidence,
 )
 from tests.polling import wait_for
@@ -132,7 +132,27 @@ def test_equivalent_airspeed_is_made_true_with_the_baro_air_density():
                                   "climb": 0})
     assert s is not None and s.tas_m_s == pytest.approx(21.0 / 0.9675, rel=2e-3)
     # sea level in the ISA: TAS = EAS
-    assert true_airspeed_m_s(20.0, 101325.0, 288.15) == pytest.approx(20.0, rel=1e-3)
+    assert float(eas_to_tas_ratio(101325.0)) == pytest.approx(1.0, rel=1e-6)
+
+
+def test_a_warm_baro_is_clamped_and_the_air_cools_with_height_as_ardupilot_takes_it():
+    """ArduPilot's EAS2TAS: the baro's temperature at the ground at most 35 degC (4.x), the ISA lapse above it.  A
+    board baro reading 55 degC at 1000 hPa, then 500 m higher (still 55 degC): the density of 35 - 3.25 degC."""
+    g, clock = guard()
+    vfr = {"airspeed": 20.0, "groundspeed": 0, "heading": 0, "throttle": 0, "alt": 0, "climb": 0}
+    g.message("SCALED_PRESSURE", {"time_boot_ms": 2000, "press_abs": 1000.0, "press_diff": 0.0,
+                                  "temperature": 5500, "temperature_press_diff": 0})
+    clock.t_us += 10_000
+    s = g.message("VFR_HUD", vfr)
+    assert s is not None and s.tas_m_s == pytest.approx(20.0 * math.sqrt(1.225 / (1e5 / (287.053 * 308.15))),
+                                                         rel=1e-4)
+    p_up_hpa = 1013.25 * (1.0 - 0.0065 * (float(pressure_altitude_m(1e5)) + 500.0) / 288.15) ** 5.25588
+    g.message("SCALED_PRESSURE", {"time_boot_ms": 3000, "press_abs": p_up_hpa, "press_diff": 0.0,
+                                  "temperature": 5500, "temperature_press_diff": 0})
+    clock.t_us += 10_000
+    s = g.message("VFR_HUD", vfr)
+    rho_up = 100.0 * p_up_hpa / (287.053 * (308.15 - 3.25))
+    assert s is not None and s.tas_m_s == pytest.approx(20.0 * math.sqrt(1.225 / rho_up), rel=1e-4)
 
 
 def test_samples_run_on_the_autopilot_clock_at_its_rate():

@@ -13,6 +13,7 @@ from pymavlink import mavutil
 from scipy.spatial.transform import Rotation
 
 from common.angles import angle_diff
+from common.atmosphere import ARDUPILOT_3_BARO_TEMP_CLAMP_C, eas_to_tas_ratio, pressure_altitude_m
 from common.samples import AttitudeSample, ImuSample
 from nav.logreader import (
     AirspeedSample,
@@ -20,8 +21,6 @@ from nav.logreader import (
     BaroSample,
     GnssSample,
     LogFormatError,
-    eas_to_tas_ratio,
-    isa_pressure_altitude_m,
     local_ned_m,
     read_log,
 )
@@ -45,12 +44,12 @@ def _pymavlink_messages(path: Path, types: set[str]) -> dict[str, list]:
 
 @pytest.fixture(scope="module")
 def short_log():
-    return read_log(shared_data("flightlogs", SHORT))
+    return read_log(shared_data("flightlogs", SHORT), ARDUPILOT_3_BARO_TEMP_CLAMP_C)
 
 
 @pytest.fixture(scope="module")
 def long_log():
-    return read_log(shared_data("flightlogs", LONG))
+    return read_log(shared_data("flightlogs", LONG), ARDUPILOT_3_BARO_TEMP_CLAMP_C)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -75,8 +74,8 @@ def test_flat_earth_matches_the_standard_degree_lengths():
 
 def test_isa_helpers_match_the_standard_atmosphere_table():
     # ICAO standard atmosphere: 1000 m -> 89874.6 Pa, density ratio 0.90748
-    assert float(isa_pressure_altitude_m(89874.6)) == pytest.approx(1000.0, abs=0.5)
-    assert float(isa_pressure_altitude_m(101325.0)) == pytest.approx(0.0, abs=1e-9)
+    assert float(pressure_altitude_m(89874.6)) == pytest.approx(1000.0, abs=0.5)
+    assert float(pressure_altitude_m(101325.0)) == pytest.approx(0.0, abs=1e-9)
     assert float(eas_to_tas_ratio(89874.6)) == pytest.approx(1.0 / math.sqrt(0.90748), rel=1e-4)
 
 
@@ -399,7 +398,7 @@ def test_ulog_reads_every_topic_with_its_units(synthetic_ulog):
     air = flog.of_type(AirspeedSample)[0]
     assert air.tas_m_s == pytest.approx(18.0) and math.isnan(air.eas_m_s)  # PX4 logs TAS: no conversion
     baro = flog.of_type(BaroSample)[0]
-    assert baro.alt_m == pytest.approx(float(isa_pressure_altitude_m(95000.0)))
+    assert baro.alt_m == pytest.approx(float(pressure_altitude_m(95000.0)))
     gnss = flog.of_type(GnssSample)
     pos = np.array([g.pos_ned_m for g in gnss])
     np.testing.assert_allclose(pos, np.array(truth["pos"]) - [0.0, 0.0, -2.0], atol=0.05)

@@ -8,8 +8,9 @@ import math
 import numpy as np
 import pytest
 
+from common.atmosphere import ARDUPILOT_3_BARO_TEMP_CLAMP_C, eas_to_tas_ratio, pressure_altitude_m
 from common.samples import AirspeedSample, AttitudeSample, BaroSample, GnssSample
-from nav.logreader import eas_to_tas_ratio, isa_pressure_altitude_m, read_log
+from nav.logreader import read_log
 from nav.replay import ReplayConfig
 from nav.replay_checks import along_cross_heading, autopilot_position_lag_s, gnss_velocity_drift_m_s, wind_triangle_fit
 from tests.conftest import shared_data
@@ -83,7 +84,7 @@ def test_eas_to_tas_with_a_ground_temperature_is_the_ideal_gas_density():
     rho = p_pa / (287.053 * t_k)
     assert float(eas_to_tas_ratio(p_pa, (p_pa, t_k))) == pytest.approx(math.sqrt(1.225 / rho), rel=1e-3)
     # 500 m higher (ISA pressure altitude): the ISA lapse rate, 3.25 K colder
-    p_up = 101325.0 * (1.0 - 0.0065 * (float(isa_pressure_altitude_m(p_pa)) + 500.0) / 288.15) ** 5.25588
+    p_up = 101325.0 * (1.0 - 0.0065 * (float(pressure_altitude_m(p_pa)) + 500.0) / 288.15) ** 5.25588
     rho_up = p_up / (287.053 * (t_k - 3.25))
     assert float(eas_to_tas_ratio(p_up, (p_pa, t_k))) == pytest.approx(math.sqrt(1.225 / rho_up), rel=1e-3)
 
@@ -91,7 +92,7 @@ def test_eas_to_tas_with_a_ground_temperature_is_the_ideal_gas_density():
 def test_alfa_true_airspeed_is_the_autopilots():
     """The logged EAS becomes the TAS ArduPilot's EKF fused (AP_Baro::get_EAS2TAS: the baro temperature capped at
     25 C at the ground, the ISA lapse above it, its own gas constant 287.26), not the ISA atmosphere's 2.2 % less."""
-    flight = read_log(shared_data("flightlogs", LONG))
+    flight = read_log(shared_data("flightlogs", LONG), ARDUPILOT_3_BARO_TEMP_CLAMP_C)
     assert flight.report.air_temp_c == 25.0                   # the baro reads 54-56 C
     air = flight.of_type(AirspeedSample)
     baro = flight.of_type(BaroSample)
