@@ -25,7 +25,7 @@ test: $(STAMP)
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check common gsoe fusion pipeline nav sim cli tests
-	$(VENV)/bin/mypy common gsoe fusion pipeline
+	$(VENV)/bin/mypy common gsoe fusion pipeline sim nav cli
 
 bench: $(STAMP)
 	$(VENV)/bin/gsoe bench

@@ -50,9 +50,10 @@ def fly_optical(flight: ScriptedFlight, cfg: GsoeConfig, camera: CameraModel, re
         while t_imu <= t_frame + 1e-9:
             tr = flight.truth(t_imu)
             t_us = int(round(t_imu * 1e6))
-            gyro = tr.rates_b_rad_s + (rng.normal(0.0, gyro_noise_rad_s, 3) if gyro_noise_rad_s > 0 else 0.0)
+            gyro = tr.rates_b_rad_s + (rng.normal(0.0, gyro_noise_rad_s, 3)
+                                       if rng is not None and gyro_noise_rad_s > 0 else 0.0)
             est.push_imu(ImuSample(t_us, gyro, tr.accel_b_m_s2))
-            n = rng.normal(0.0, att_noise_rad, 3) if att_noise_rad > 0 else np.zeros(3)
+            n = rng.normal(0.0, att_noise_rad, 3) if rng is not None and att_noise_rad > 0 else np.zeros(3)
             est.push_attitude(AttitudeSample(t_us, tr.roll_rad + n[0], tr.pitch_rad + n[1], tr.yaw_rad + n[2]))
             t_imu += dt_imu
         tr = flight.truth(t_frame)

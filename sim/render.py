@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import math
 import sys
-from typing import Any
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -232,10 +232,11 @@ class CameraRenderer:
         maps = self._maps(pos, R_nb, roi)
         atlas = self.world.atlas
         mx, my = maps["m0"]
-        a = cv2.remap(atlas, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        # the atlas is uint8, so is what remap samples from it (OpenCV's stubs do not say)
+        a = cast(NDArray[np.uint8], cv2.remap(atlas, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE))
         if maps["m1"] is not None:
             mx, my = maps["m1"]
-            b = cv2.remap(atlas, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+            b = cast(NDArray[np.uint8], cv2.remap(atlas, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE))
         else:
             b = a
         far = maps["far"]
