@@ -169,6 +169,44 @@ def test_with_gnss_withheld_the_filter_restarts_from_air_data_at_the_last_health
     np.testing.assert_allclose(e.pos_ne_m, fl.truth_pos(e.t_us)[:2], atol=10.0)
 
 
+def test_a_spoofed_fix_after_a_divergence_is_not_what_the_filter_restarts_from(gsoe_config, camera):
+    """While the filter is dropped the GNSS monitor has no estimate to judge fixes by: fixes 500 m off with a
+    velocity 15 m/s off, arriving from the spikes on, are refused as restart points (they do not agree with the last
+    healthy estimate carried on, nor with the air data); the filter restarts from air data at the last healthy
+    position, and once the fixes are right again it goes on with them."""
+    pipe, fl, _ = guarded(gsoe_config, camera)
+    fl.run(20.0)
+    fl.fix_offset = (np.array([500.0, 0.0, 0.0]), np.array([0.0, 15.0, 0.0]))
+    spiked(fl, clean_s=4.0)                   # (no valid velocity 1 m/s off: spiked() checks)
+    assert pipe.status.restart_fixes_refused >= 5, pipe.status
+    # with the fixes still "healthy" (no monitor here) the refused GNSS velocity drops the air-data filter again
+    # (issue 23's rule); it is restarted from air data every time, never from the spoofer
+    assert set(pipe.status.ekf_resets) == {"air data"}, pipe.status
+    e = pipe.estimate()
+    if e is not None:
+        np.testing.assert_allclose(e.pos_ne_m, fl.truth_pos(e.t_us)[:2], atol=20.0)   # not the spoofer's 500 m
+    fl.fix_offset = (np.zeros(3), np.zeros(3))
+    fl.run(5.0)
+    e = pipe.estimate()
+    assert e is not None and e.valid, pipe.status
+    np.testing.assert_allclose(e.pos_ne_m, fl.truth_pos(e.t_us)[:2], atol=5.0)
+    np.testing.assert_allclose(e.vel_ned_m_s[:2], VEL_NE_M_S, atol=0.3)
+
+
+def test_a_genuine_fix_after_a_divergence_restarts_the_filter_even_after_a_long_drop(gsoe_config, camera):
+    """The restart tolerance grows with the time since the last healthy estimate: fixes that come back 30 s into
+    a drop (GNSS withheld, no air data start: ``ekf_start = "gnss"``) still restart the filter."""
+    pipe, fl, _ = guarded(gsoe_config, camera, ekf_start="gnss")
+    fl.run(20.0)
+    fl.gnss = False
+    spiked(fl, clean_s=30.0)
+    assert pipe.estimate() is None or not pipe.estimate().valid
+    fl.gnss = True
+    fl.run(3.0)
+    assert pipe.status.ekf_resets == {"GNSS": 1} and pipe.status.restart_fixes_refused == 0, pipe.status
+    assert pipe.estimate().valid
+
+
 @pytest.mark.parametrize("field,value,test", [
     ("vel_ned_m_s", (80.0, 0.0, 0.0), "ground speed"),
     ("vel_ned_m_s", (20.0, 0.0, -45.0), "vertical speed"),
