@@ -4,6 +4,7 @@ outputs (body-frame forms carry no heading of their own)."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import socket
@@ -184,6 +185,54 @@ def test_samples_run_on_the_autopilot_clock_at_its_rate():
     assert out[4].t_us > times[-1] and out[5].t_us - out[4].t_us == 20_000
     # a stamp far ahead of the others (another time base) is refused
     assert g.message("ATTITUDE", {**att, "time_boot_ms": 10_000_000}) is None
+
+
+def _autopilot_stream(seconds: float) -> list[tuple[int, str, dict[str, Any]]]:
+    """What ArduPlane sends, in its order: (send time on its clock in us, message, fields); attitude and IMU at 50 Hz,
+    baro and VFR_HUD (no stamp of its own) at 10 Hz."""
+    att = {"roll": 0.01, "pitch": 0.02, "rollspeed": 0.0, "pitchspeed": 0.0, "yawspeed": 0.0}
+    out: list[tuple[int, str, dict[str, Any]]] = []
+    for k in range(round(seconds * 50)):
+        t_ms = 60_000 + 20 * k
+        out.append((t_ms * 1000, "ATTITUDE", {**att, "time_boot_ms": t_ms, "yaw": 0.001 * k}))
+        out.append((t_ms * 1000 + 100, "RAW_IMU", raw_imu(t_ms * 1000 + 100, (10, -20, -1001), (1, 2, -3 + k % 7))))
+        if k % 5 == 0:
+            out.append((t_ms * 1000 + 200, "SCALED_PRESSURE", {"time_boot_ms": t_ms, "press_abs": 934.0 - 0.01 * k,
+                                                               "press_diff": 0.0, "temperature": 3000,
+                                                               "temperature_press_diff": 0}))
+            out.append((t_ms * 1000 + 300, "VFR_HUD", {"airspeed": 20.0 + 0.01 * k, "groundspeed": 0, "heading": 0,
+                                                       "throttle": 0, "alt": 0, "climb": 0}))
+    return out
+
+
+def _received(stream: list[tuple[int, str, dict[str, Any]]], arrival_us: Any) -> list[tuple[str, Any]]:
+    """The samples a fresh guard makes of ``stream`` when message i arrives at companion time ``arrival_us(i, sent)``
+    (the companion's clock 5 000 s ahead of the autopilot's)."""
+    g, clock = guard()
+    samples = []
+    for i, (sent_us, name, fields) in enumerate(stream):
+        clock.t_us = 5_000_000_000 + arrival_us(i, sent_us)
+        s = g.message(name, fields)
+        if s is not None:
+            samples.append((name, s))
+    return samples
+
+
+def test_a_bursty_link_gives_the_samples_of_a_prompt_one():
+    """A telemetry radio holds messages back and releases them in bursts: every message of a second arriving at once
+    at its end (up to 1 s late), after a prompt first one.  The samples are those of the prompt link (5 ms of
+    latency) exactly: the same times (the autopilot's stamps, VFR_HUD's the newest before it), the same values."""
+    stream = _autopilot_stream(6.0)
+    prompt = _received(stream, lambda i, sent: sent + 5_000)
+    bursty = _received(stream, lambda i, sent: sent + 5_000 if i == 0 else (sent // US + 1) * US + 5_000)
+    assert len(prompt) == len(stream) and len(bursty) == len(prompt)
+    for (name_p, p), (name_b, b) in zip(prompt, bursty, strict=True):
+        assert name_p == name_b and p.t_us == b.t_us, (name_p, p, b)
+        for field in dataclasses.fields(p):
+            np.testing.assert_array_equal(getattr(p, field.name), getattr(b, field.name))
+    # and the times are the autopilot's: 20 ms apart at 50 Hz, whatever the arrival
+    att_t = [s.t_us for name, s in bursty if name == "ATTITUDE"]
+    assert set(np.diff(att_t)) == {20_000}
 
 
 def estimate(**kw: Any) -> OutputEstimate:
