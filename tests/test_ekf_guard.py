@@ -170,10 +170,10 @@ def test_with_gnss_withheld_the_filter_restarts_from_air_data_at_the_last_health
 
 
 def test_a_spoofed_fix_after_a_divergence_is_not_what_the_filter_restarts_from(gsoe_config, camera):
-    """While the filter is dropped the GNSS monitor has no estimate to judge fixes by: fixes 500 m off with a
-    velocity 15 m/s off, arriving from the spikes on, are refused as restart points (they do not agree with the last
-    healthy estimate carried on, nor with the air data); the filter restarts from air data at the last healthy
-    position, and once the fixes are right again it goes on with them."""
+    """While the filter is dropped the GNSS monitor has no estimate to judge fixes by: fixes whose velocity is 15 m/s
+    off the air data (TAS along the heading plus the last healthy wind), arriving from the spikes on, are refused as
+    restart points; the filter restarts from air data at the last healthy position, and once the fixes are right
+    again it goes on with them."""
     pipe, fl, _ = guarded(gsoe_config, camera)
     fl.run(20.0)
     fl.fix_offset = (np.array([500.0, 0.0, 0.0]), np.array([0.0, 15.0, 0.0]))
@@ -191,6 +191,16 @@ def test_a_spoofed_fix_after_a_divergence_is_not_what_the_filter_restarts_from(g
     assert e is not None and e.valid, pipe.status
     np.testing.assert_allclose(e.pos_ne_m, fl.truth_pos(e.t_us)[:2], atol=5.0)
     np.testing.assert_allclose(e.vel_ned_m_s[:2], VEL_NE_M_S, atol=0.3)
+
+
+def test_a_fix_far_from_a_filter_that_drifted_still_restarts_it(gsoe_config, camera):
+    """The filter itself may be what went wrong (a biased optical scale carries it hundreds of metres off before the
+    guard sees it): a fix 300 m from the last healthy estimate, with a velocity that fits the air data, restarts it."""
+    pipe, fl, _ = guarded(gsoe_config, camera)
+    fl.run(20.0)
+    fl.fix_offset = (np.array([300.0, 0.0, 0.0]), np.zeros(3))    # the truth as the EKF sees it: 300 m off
+    spiked(fl, clean_s=4.0)
+    assert pipe.status.restart_fixes_refused == 0 and pipe.status.ekf_resets == {"GNSS": 1}, pipe.status
 
 
 def test_a_genuine_fix_after_a_divergence_restarts_the_filter_even_after_a_long_drop(gsoe_config, camera):
