@@ -555,6 +555,13 @@ class LinkClock:
         return t_us - (self.offset_us or 0)
 
 
+def _plausible_pressure(p_hpa: float) -> bool:
+    """A static pressure (hPa) whose pressure altitude lies in :data:`ALT_RANGE_M` (the air density's, the ground
+    reference's: one glitch must not become the ground)."""
+    return (math.isfinite(p_hpa) and p_hpa > 0.0
+            and ALT_RANGE_M[0] <= float(pressure_altitude_m(100.0 * p_hpa)) <= ALT_RANGE_M[1])
+
+
 def _finite(*values: object) -> bool:
     """Whether every value is a finite number (telemetry fields may be anything a sender put there)."""
     return all(isinstance(v, int | float) and math.isfinite(v) for v in values)
@@ -756,16 +763,16 @@ class TelemetryGuard:
 
     def _air_from_scaled_pressure(self, f: dict[str, Any]) -> None:
         p_hpa, t_cdeg = _field(f, "press_abs"), _field(f, "temperature")
-        if math.isfinite(p_hpa) and p_hpa > 0.0:
-            self._pressure_pa = 100.0 * p_hpa
+        if not _plausible_pressure(p_hpa):
+            return
+        self._pressure_pa = 100.0 * p_hpa
         if math.isfinite(t_cdeg) and -8000.0 < t_cdeg < 8000.0:
             self._ground_air.update(self._pressure_pa, t_cdeg / 100.0)
 
     def _air_from_highres(self, f: dict[str, Any]) -> None:
         upd = int(f.get("fields_updated") or 0)
         p_hpa, t_c = (_field(f, k) if k in f else math.nan for k in ("abs_pressure", "temperature"))
-        if upd & (1 << 9) and math.isfinite(p_hpa) and p_hpa > 0.0 and "SCALED_PRESSURE" not in self._seen.get(
-                "baro", {}):
+        if upd & (1 << 9) and _plausible_pressure(p_hpa) and "SCALED_PRESSURE" not in self._seen.get("baro", {}):
             self._pressure_pa = 100.0 * p_hpa
             if upd & (1 << 12) and math.isfinite(t_c) and -80.0 < t_c < 80.0:
                 self._ground_air.update(self._pressure_pa, t_c)

@@ -147,6 +147,12 @@ def test_a_warm_baro_is_clamped_and_the_air_cools_with_height_as_ardupilot_takes
     s = g.message("VFR_HUD", vfr)
     assert s is not None and s.tas_m_s == pytest.approx(20.0 * math.sqrt(1.225 / (1e5 / (287.053 * 308.15))),
                                                          rel=1e-4)
+    # a glitch (2000 hPa: 5.6 km below sea level) is neither the air's pressure nor the new ground
+    g.message("SCALED_PRESSURE", {"time_boot_ms": 2500, "press_abs": 2000.0, "press_diff": 0.0,
+                                  "temperature": 2000, "temperature_press_diff": 0})
+    clock.t_us += 10_000
+    s2 = g.message("VFR_HUD", vfr)
+    assert s2 is not None and s2.tas_m_s == s.tas_m_s
     p_up_hpa = 1013.25 * (1.0 - 0.0065 * (float(pressure_altitude_m(1e5)) + 500.0) / 288.15) ** 5.25588
     g.message("SCALED_PRESSURE", {"time_boot_ms": 3000, "press_abs": p_up_hpa, "press_diff": 0.0,
                                   "temperature": 5500, "temperature_press_diff": 0})
