@@ -15,6 +15,7 @@ from common.config import ConfigError
 # subcommand -> (module, one-line help)
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "calibrate": ("cli.cmd_calibrate", "calibrate a camera from chessboard images and write a camera file"),
+    "calibrate-mount": ("cli.cmd_calibrate_mount", "the camera mount's yaw correction learnt in a flight (ekf.csv)"),
     "render": ("cli.cmd_render", "render one raw fisheye camera frame to PNG"),
     "bench": ("cli.cmd_bench", "benchmark the per-frame optical pipeline, renderer and EKF step"),
     "sim": ("cli.cmd_sim", "fly a simulated scenario (default: the paper's SIL flight) and report"),

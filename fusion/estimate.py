@@ -94,6 +94,7 @@ class NavEstimate:
     cov_pvw: Mat
     valid: bool
     invalid_reason: str = ""
+    opt_rot_sigma_rad: float = math.nan     #: one-sigma of ``opt_rot_rad`` (what a camera-mount calibration reads)
 
     def as_record(self) -> dict[str, Any]:
         """Flat record for ``ekf.csv`` (unit suffixes in the column names)."""
@@ -120,7 +121,7 @@ class NavEstimate:
             ata_rad=self.ata_rad, ata_sigma_rad=self.ata_sigma_rad,
             accel_bias_x_m_s2=float(self.accel_bias_b_m_s2[0]), accel_bias_y_m_s2=float(self.accel_bias_b_m_s2[1]),
             accel_bias_z_m_s2=float(self.accel_bias_b_m_s2[2]), yaw_bias_rad=self.yaw_bias_rad,
-            opt_rot_rad=self.opt_rot_rad,
+            opt_rot_rad=self.opt_rot_rad, opt_rot_sigma_rad=self.opt_rot_sigma_rad,
             baro_bias_m=self.baro_bias_m, terrain_h_m=self.terrain_h_m, tas_scale=self.tas_scale,
             side_force_ofs_m_s2=self.side_force_ofs_m_s2, aoa_ofs_rad=self.aoa_ofs_rad,
             wind_turb_sigma_m_s=self.wind_turb_sigma_m_s,
@@ -221,5 +222,5 @@ def make_estimate(cfg: EkfConfig, x: Vec, P: Mat, t_us: int, att: AttitudeSample
         terrain_h_m=xl[ith], tas_scale=xl[S.tas_scale.start], side_force_ofs_m_s2=xl[S.side_force_ofs.start],
         aoa_ofs_rad=xl[S.aoa_ofs.start], wind_turb_sigma_m_s=math.sqrt(turb_var),
         cov_pvw=_read_only(P[_IX_PVW]),
-        valid=ok, invalid_reason=why,
+        valid=ok, invalid_reason=why, opt_rot_sigma_rad=float(sd[S.opt_rot.start]),
     )
