@@ -819,7 +819,7 @@ def _ulog_gnss(d: dict[str, NDArray[Any]]) -> NDArray[np.float64]:
 # Entry point
 
 _READERS: dict[str, Callable[[Path, float], FlightLog]] = {"tlog": read_tlog, "dataflash": read_dataflash,
-                                                     "ulog": read_ulog}
+                                                            "ulog": read_ulog}
 
 
 def read_log(path: str | Path, baro_temp_clamp_c: float = ARDUPILOT_BARO_TEMP_CLAMP_C) -> FlightLog:

@@ -457,9 +457,7 @@ class NavPipeline:
         track."""
         if not (math.isfinite(self._tas_m_s) and self._att is not None and wind is not None):
             return True
-        yaw = self._att.yaw_rad
-        air_ne = self._tas_m_s * np.array([math.cos(yaw), math.sin(yaw)]) + wind
-        vel_off_m_s = float(np.hypot(*(vel[:2] - air_ne)))
+        vel_off_m_s = float(np.hypot(*(vel[:2] - self._air_data_vel_ne(self._att, wind))))
         if vel_off_m_s <= self.cfg.guard_restart_speed_tol_m_s:
             return True
         self.status.restart_fixes_refused += 1
@@ -482,7 +480,6 @@ class NavPipeline:
         h = self.baro_height_m
         if not (math.isfinite(self._tas_m_s) and math.isfinite(h)):
             return
-        yaw = self._att.yaw_rad
         pos_ne, wind = np.zeros(2), None
         good = self._restart_from if self._diverged else None
         if good is not None:
@@ -490,9 +487,16 @@ class NavPipeline:
             dt_s = (self._now_us - e.t_us) / US_PER_S
             pos_ne = np.array(e.pos_ne_m, dtype=float) + dt_s * np.array(e.vel_ned_m_s[:2], dtype=float)
             wind = np.array(e.wind_ne_m_s, dtype=float)[:2]
-        vel_ne = self._tas_m_s * np.array([math.cos(yaw), math.sin(yaw)]) + (wind if wind is not None else 0.0)
+        vel_ne = self._air_data_vel_ne(self._att, wind)
         self._start(self._now_us, np.array([*pos_ne, -h]), np.array([*vel_ne, 0.0]),
                     "air data" if self._diverged else "air data (no GNSS fix)", wind_ne_m_s=wind)
+
+    def _air_data_vel_ne(self, att: AttitudeSample, wind_ne_m_s: NDArray[np.float64] | None) -> NDArray[np.float64]:
+        """The ground velocity (m/s, N/E) the air data give: the TAS along the AHRS heading plus the wind (none: still
+        air); what an air-data start starts from and what a restart fix's velocity is judged against."""
+        yaw = att.yaw_rad
+        air_ne = self._tas_m_s * np.array([math.cos(yaw), math.sin(yaw)])
+        return air_ne + wind_ne_m_s if wind_ne_m_s is not None else air_ne
 
     def _ekf_event(self, t_us: int, kind: str, reason: str, text: str, key: str) -> None:
         """A divergence or reset (module docstring): logged, counted, written and queued for the caller."""

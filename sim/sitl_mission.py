@@ -86,17 +86,13 @@ LIFTOFF_M = 2.0               # truth height over the ground that counts as airb
 SITL_AIRFRAME = {"ekf.airframe_mass_kg": 2.0, "ekf.airframe_wing_area_m2": 0.45,
                  "ekf.sideslip_side_force_coef_per_rad": -0.98, "ekf.air_density_kg_m3": 1.225,
                  "ekf.aoa_lift_slope_per_rad": 6.9, "ekf.aoa_lift_coef_zero": 0.56}
-#: what the companion assumes of this autopilot's sensors, measured in these flights:
-#: - ArduPlane SITL's pitot, made true with the baro's air density, is exact (EAS / TAS 0.9351 against the
-#:   density's 0.9351): with the default 3 % scale uncertainty the GNSS-denied EKF traded the optical scale (its
-#:   height) against the pitot's, 2.9 m low and +1.9 % after 600 s, a 1.4 % along-track velocity error;
-#: - ArduPlane's heading without GNSS wanders (3-5 deg either way over a lap, even fed a perfect velocity), and
-#:   the companion's heading is ArduPlane's less its yaw-bias estimate: with the default walk (0.002 deg/sqrt(s)) the
-#:   estimate stayed at its GNSS-on value and the wander came back through the wind as a velocity error
-#:   (600 s: 252 m with it, 199 m with 0.05 deg/sqrt(s); 0.2 did no better);
-#: - the camera mount is exact (the bridge renders with the companion's own camera file), as a calibrated mount is:
-#:   the optical-rotation state held at 0 +- 0.1 deg (with its default 3 deg it took ArduPlane's heading error while
-#:   GNSS was on, -0.46 deg, and the drift without GNSS was 0.6 deg off on the transit; held, 0.10 deg)
+#: what the companion assumes of this autopilot's sensors and camera (the figures: docs/ardupilot.md):
+#: - ArduPlane SITL's pitot, made true with the baro's air density, is exact: its scale pinned;
+#: - ArduPlane's heading without GNSS wanders a few degrees over a lap, and the companion's heading is ArduPlane's
+#:   less its yaw-bias estimate: the yaw bias walks fast enough to follow it;
+#: - the camera mount is exact (the bridge renders with the companion's own camera file), as a calibrated mount is
+#:   (``gsoe calibrate-mount``): the optical-rotation state held at 0 +- 0.1 deg, so that it does not take
+#:   ArduPlane's heading error on a straight route
 SITL_COMPANION = {"ekf.init_tas_scale_sigma": 0.002, "ekf.yaw_bias_rw_deg_per_rt_s": 0.05,
                   "ekf.init_opt_rot_sigma_deg": 0.1, "ekf.opt_rot_rw_deg_per_rt_s": 0.002}
 #: what the harness asks for on its own link (SERIAL0), Hz
