@@ -80,20 +80,6 @@ def _chol_inv(Sm: list[list[float]]) -> list[list[float]] | None:
     return Ci
 
 
-def _whiten_2x2(Sm: list[list[float]], y: Sequence[float]) -> tuple[Mat, list[float], float] | None:
-    """``(C^-T, w = C^-1 y, w' w)`` of a 2 x 2 ``S = C C'`` in closed form; ``None`` unless ``S`` is positive
-    definite."""
-    (s00, s01), (_, s11) = Sm
-    if not (s00 > 0.0 and s00 * s11 - s01 * s01 > 0.0):
-        return None
-    c00 = math.sqrt(s00)                          # Cholesky factor C = [[c00, 0], [c10, c11]]
-    c10 = s01 / c00
-    c11 = math.sqrt(s11 - c10 * c10)
-    i00, i10, i11 = 1.0 / c00, -c10 / (c00 * c11), 1.0 / c11     # C^-1 = [[i00, 0], [i10, i11]]
-    w0, w1 = i00 * y[0], i10 * y[0] + i11 * y[1]
-    return np.fromiter((i00, i10, 0.0, i11), float, 4).reshape(2, 2), [w0, w1], w0 * w0 + w1 * w1
-
-
 def _whiten(Sm: list[list[float]], y: Sequence[float]) -> tuple[Mat, list[float], float] | None:
     """``(C^-T, w = C^-1 y, w' w)`` of ``S = C C'`` (any small size); ``None`` unless ``S`` is positive definite."""
     Ci = _chol_inv(Sm)
@@ -154,8 +140,11 @@ class FilterCore:
         """Fuse the measurement ``z`` (model ``m`` at the current state) unless the numerics, the covariance-health
         check or the NIS gate say no; fills ``row`` and returns whether it was fused."""
         h = m.H
-        if h is not None and h.ndim == 1:
-            return self._update_scalar(row, t_us, z[0] - m.z_hat[0], h, m, gate_nis)
+        if h is not None:
+            if h.ndim == 1:
+                return self._update_scalar(row, t_us, z[0] - m.z_hat[0], h, m, gate_nis)
+            if len(m.z_hat) == 2:
+                return self._update_2d(row, t_us, z, h, m, gate_nis)
         r = m.r
         PHt, hph_diag, Sm, innov = self._prior_terms(z, m)
         var = tuple([Sm[i][i] for i in range(len(innov))])     # (list comprehensions: no generator frames)
@@ -165,7 +154,7 @@ class FilterCore:
         if any([v < -COV_RESET_REL_TOL * ri for v, ri in zip(hph_diag, r, strict=True)]):
             self._cov_reset(row, t_us, m.columns(), innov, var)
             return False
-        white = (_whiten_2x2 if m.idx is None and len(innov) == 2 else _whiten)(Sm, innov)
+        white = _whiten(Sm, innov)
         if white is None:
             row.set(t_us, rejected=True, reason=REASON_NUMERIC, innovation=innov, innovation_var=var)
             return False
@@ -177,6 +166,40 @@ class FilterCore:
         L = PHt.dot(CiT)                                  # L = P H' C^-T: L L' = P H' S^-1 H P; K_opt y = L C^-1 y
         check = float(np.vdot(L, L))                      # trace(A), whose finiteness is all that is asked
         return self._commit(row, t_us, L.dot(w), L.dot(L.T), check, innov, var, ratio)
+
+    def _update_2d(self, row: StatusRow, t_us: int, z: Sequence[float] | Vec, H: Mat, m: Linearised,
+                   gate_nis: float) -> bool:
+        """:meth:`update` of a two-dimensional measurement with Jacobian ``H`` (2, n): the 2 x 2 algebra (``S``, its
+        Cholesky factor ``C``, ``C^-1``, the whitened innovation) in closed form on floats."""
+        r0, r1 = m.r
+        zh0, zh1 = m.z_hat
+        y0, y1 = z[0] - zh0, z[1] - zh1
+        PHt = self.P.dot(H.T)
+        (a, b), (c, d) = H.dot(PHt).tolist()
+        s00, s01, s11 = a + r0, 0.5 * (b + c), d + r1
+        innov, var = (y0, y1), (s00, s11)
+        if not math.isfinite(y0 + y1 + s00 + s01 + s11):
+            row.set(t_us, rejected=True, reason=REASON_NUMERIC)
+            return False
+        if a < -COV_RESET_REL_TOL * r0 or d < -COV_RESET_REL_TOL * r1:
+            self._cov_reset(row, t_us, m.columns(), innov, var)
+            return False
+        det = s00 * s11 - s01 * s01
+        if not (s00 > 0.0 and det > 0.0):
+            row.set(t_us, rejected=True, reason=REASON_NUMERIC, innovation=innov, innovation_var=var)
+            return False
+        c00 = math.sqrt(s00)                      # C = [[c00, 0], [c10, c11]]
+        c10 = s01 / c00
+        c11 = math.sqrt(s11 - c10 * c10)
+        i00, i10, i11 = 1.0 / c00, -c10 / (c00 * c11), 1.0 / c11     # C^-1 = [[i00, 0], [i10, i11]]
+        w0, w1 = i00 * y0, i10 * y0 + i11 * y1
+        ratio = (w0 * w0 + w1 * w1) / gate_nis
+        if not ratio <= 1.0:
+            row.set(t_us, rejected=True, reason=REASON_GATE, innovation=innov, innovation_var=var, test_ratio=ratio)
+            return False
+        L = PHt.dot(np.fromiter((i00, i10, 0.0, i11), float, 4).reshape(2, 2))     # L = P H' C^-T
+        return self._commit(row, t_us, L.dot(np.fromiter((w0, w1), float, 2)), L.dot(L.T), float(np.vdot(L, L)),
+                            innov, var, ratio)
 
     def _update_scalar(self, row: StatusRow, t_us: int, y: float, h: Vec, m: Linearised, gate_nis: float) -> bool:
         """:meth:`update` of a scalar measurement (innovation ``y``, Jacobian row ``h``): floats throughout."""
@@ -208,12 +231,6 @@ class FilterCore:
             y = tuple((np.asarray(z) - self.x[idx]).tolist())
             PHt = P[:, idx]
             hph = PHt[idx].tolist()
-        elif len(m.z_hat) == 2:                           # 2-D fast path: floats
-            (zh0, zh1), H = m.z_hat, m.H
-            PHt = P.dot(H.T)
-            (a, b), (c, d) = H.dot(PHt).tolist()
-            s01 = 0.5 * (b + c)
-            return PHt, [a, d], [[a + r[0], s01], [s01, d + r[1]]], (z[0] - zh0, z[1] - zh1)
         else:
             y = tuple(zi - zh for zi, zh in zip(z, m.z_hat, strict=True))
             PHt = P.dot(m.H.T)

@@ -58,7 +58,7 @@ def air_angle_row(gx: float, g2: float, col: int, r: tuple[float, ...], w: tuple
     return h
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class AirAngle(ModelBase):
     """What the air-data angle pseudo-measurements (sideslip, lift-model angle of attack) are built from: the AHRS
     attitude ``R_nb_ahrs`` (:data:`Rotation`), the gain of the accelerometer reading in the measured angle

@@ -34,7 +34,7 @@ REASON_WIND_RESET = "wind reset from the wind triangle (first airspeed sample)"
 _I_WIND, _I_WMEAN = S.idx("wind_ne"), S.idx("wind_mean_ne")
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class TrueAirspeed(ModelBase):
     """Measured true airspeed (m/s): ``(1 + tas_scale) * |v_ground - wind|``, both 3-D (``[wind_ne, wind_d]``; PX4
     EKF2 and ArduPilot fuse it the same way with a horizontal wind); ``var_m2_s2`` its noise variance."""
@@ -103,13 +103,18 @@ class AirspeedAid(AidSource):
         # the turbulence sigma is a measurement only after one adaptation time: before, calm air is not known
         self._calm_known_us = self.ctx.t0_us + round(self.cfg.wind.turb_adapt_time_s * US_PER_S)
         self.core.set_partial_update(TS, self.cfg.airspeed.scale_update_fraction)
+        # the configuration's derived numbers, once (this runs with every airspeed sample)
+        a = self.cfg.airspeed
+        self._min_m_s, self._gate = a.min_m_s, self.cfg.gates.airspeed_nis
+        self._calm_turb_var_max = a.scale_calm_turb_sigma_max_m_s**2
+        self._fractions = (a.scale_calm_fraction, a.scale_update_fraction)
+        self._var_terms = (a.sigma_m_s**2, a.turb_noise_factor**2)               # TrueAirspeed.variance
 
     def push(self, t_us: int, payload: Any) -> None:
         self.ctx.timeline.push(t_us, self.name, float(payload))
 
     def control(self, t_us: int, tas: float) -> bool:
-        c = self.cfg
-        if tas < c.airspeed.min_m_s:
+        if tas < self._min_m_s:
             self.row.set(t_us, reason=REASON_LOW_AIRSPEED)
             return True
         if self._wind_reset_pending and self.ctx.imu.att is not None:
@@ -117,11 +122,12 @@ class AirspeedAid(AidSource):
             return False                                  # the wind is the measurement: nothing else to learn
         turb_var = self.ctx.process.turb_var
         # the scale's fraction follows the turbulence level (full update in calm air)
-        calm = t_us >= self._calm_known_us and turb_var <= c.airspeed.scale_calm_turb_sigma_max_m_s**2
-        g = c.airspeed.scale_calm_fraction if calm else c.airspeed.scale_update_fraction
+        calm = t_us >= self._calm_known_us and turb_var <= self._calm_turb_var_max
+        g = self._fractions[0] if calm else self._fractions[1]
         if g != self.core.partial_update_fraction(TS):
             self.core.set_partial_update(TS, g)
-        self.fuse(t_us, (tas,), TrueAirspeed.from_config(c, turb_var), c.gates.airspeed_nis)
+        var0, k_turb = self._var_terms
+        self.fuse(t_us, (tas,), TrueAirspeed(var0 + k_turb * turb_var), self._gate)
         return True
 
     def reset(self, t_us: int, sample: float) -> None:

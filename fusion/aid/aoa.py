@@ -24,7 +24,7 @@ REASON_AOA_RANGE = "lift-model angle of attack outside aoa_max_deg (lift curve n
 _BAZ, _AOF = S.accel_bias_b.start + 2, S.aoa_ofs.start
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class LiftAngleOfAttack(AirAngle):
     """Angle-of-attack pseudo-measurement from the lift (rad, ``atan(v_air_b_z / v_air_b_x)``), noise ``var_rad2``.
 

@@ -4,7 +4,9 @@ A measurement model is built per measurement with its context (the camera's foca
 noise of this sample) and is then a pure function of the state: ``evaluate(x)`` (``z_hat``, shape ``(m,)``),
 ``jacobian(x)`` (``H``, ``(m, n)``, analytic; tests check it against finite differences), ``covariance(x)``
 (``R``, ``(m, m)``) and ``linearise(x)`` (all three at once, in the form the filter core's one update is cheapest
-with: :class:`~fusion.core.Linearised`).  ``x`` is laid out by :data:`fusion.state.S`.
+with: :class:`~fusion.core.Linearised`).  ``x`` is laid out by :data:`fusion.state.S`.  The models built per sample
+(airspeed, sideslip, angle of attack, optical) are slotted dataclasses that are never changed once built, but not
+frozen: a frozen dataclass's constructor costs three times as much, and they are built about 120 times a second.
 
 An aid source has PX4 EKF2's life cycle: the filter hands it each due sample (:meth:`AidSource.control`), which
 either skips it with a reason in its status record or builds the model and fuses it through the core's one update

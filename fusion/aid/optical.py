@@ -43,7 +43,7 @@ _N2, _E2, _BN2, _BE2, _BD2, _TH2, _YB2, _OR2 = (S.dim + i for i in (_N, _E, _BN,
 _I_POS, _I_CLONE, _I_POS_CLONE = S.idx("pos_ned"), S.idx("base_pos_ned"), S.idx("pos_ned", "base_pos_ned")
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class OpticalDisplacement(ModelBase):
     """The template's accumulated migration ``[dx_px, dy_px]`` since the cycle's base snapshot.
 

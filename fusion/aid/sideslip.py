@@ -22,7 +22,7 @@ from fusion.status import REASON_NO_ATTITUDE
 _BAY, _SFO = S.accel_bias_b.start + 1, S.side_force_ofs.start
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class SyntheticSideslip(AirAngle):
     """Sideslip pseudo-measurement (rad, small-angle ``v_air_b_y / v_air_b_x``) with noise variance ``var_rad2``.
 
