@@ -16,7 +16,7 @@ from fusion.aid import SOURCES, AidSource
 from fusion.aid.base import ModelBase
 from fusion.bench import bench_ekf_step
 from fusion.config import EKF_SECTIONS, LEGACY_KEYS, EkfConfig, ekf_config_from_raw
-from fusion.core import Linearised
+from fusion.core import FilterCore, Linearised
 from fusion.ekf import AID_SOURCES, ImuIncrement, NavEkf, R_nb_321, propagate
 from fusion.measurements import (
     BaroAltitude,
@@ -28,6 +28,7 @@ from fusion.measurements import (
     TrueAirspeed,
 )
 from fusion.state import S, StateLayout
+from fusion.status import REASON_GATE, StatusRow
 from gsoe.rotation import R_nb_from_euler
 from pipeline.config import load_gsoe_config
 from tests.fusion_truth import TruthConfig, filter_config, make_flight, run_ekf
@@ -575,6 +576,39 @@ def test_joseph_update_keeps_P_symmetric_positive_and_matches_textbook_kalman():
         np.testing.assert_allclose(ekf.P, P_ref, atol=1e-9)
         np.testing.assert_array_equal(ekf.P, ekf.P.T)
         assert np.linalg.eigvalsh(ekf.P).min() > -1e-9
+
+
+@pytest.mark.parametrize("m", [2, 3])
+def test_vector_update_matches_textbook_kalman_and_gates_on_the_nis(m):
+    """A 2-D update with a full Jacobian (the optical step's closed-form path) and a 3-D one (the general path)
+    against the textbook KF (an independent formula): state, covariance (exactly symmetric), innovation variance
+    and NIS; a gate below the NIS leaves the filter as it was."""
+    rng = np.random.default_rng(7 + m)
+    A = rng.standard_normal((S.dim, S.dim))
+    P = A @ A.T + np.eye(S.dim)
+    x = rng.standard_normal(S.dim)
+    H = rng.standard_normal((m, S.dim))
+    r = tuple(rng.uniform(0.2, 2.0, m))
+    z_hat, z = tuple(rng.standard_normal(m)), tuple(rng.standard_normal(m))
+    Sm = H @ P @ H.T + np.diag(r)
+    y = np.subtract(z, z_hat)
+    nis = float(y @ np.linalg.solve(Sm, y))
+    K = P @ H.T @ np.linalg.inv(Sm)
+    lin = Linearised(z_hat, H, None, r)
+
+    core = FilterCore(x.copy(), P.copy(), np.diag(P).copy())
+    row = StatusRow("test")
+    assert not core.update(row, 5, z, lin, gate_nis=0.99 * nis)
+    assert row.reason == REASON_GATE and row.test_ratio == pytest.approx(1 / 0.99, rel=1e-9)
+    np.testing.assert_array_equal(core.x, x)
+    np.testing.assert_array_equal(core.P, P)
+
+    assert core.update(row, 6, z, lin, gate_nis=1.01 * nis)
+    np.testing.assert_allclose(core.x, x + K @ y, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(core.P, (np.eye(S.dim) - K @ H) @ P, rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(core.P, core.P.T)
+    np.testing.assert_allclose(row.innovation_var, np.diag(Sm), rtol=1e-12)
+    assert row.test_ratio == pytest.approx(1 / 1.01, rel=1e-9)
 
 
 def test_status_records_have_fixed_columns():
