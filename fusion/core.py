@@ -113,7 +113,7 @@ class FilterCore:
         """``x = x_new``, ``P = F P F' + Q`` symmetrised (``F P F'`` is symmetric only up to rounding), then the
         per-prediction variances ``add_var`` (index, variance) on the diagonal."""
         self.x = x_new
-        FPF = np.dot(F, self.P).dot(F.T)
+        FPF = F.dot(self.P).dot(F.T)
         FPF += Q
         P = FPF.T.copy()                 # (FPF' + FPF) / 2: the same sums as FPF + FPF', whose strided read of the
         P += FPF                         # transpose costs more than this contiguous copy and in-place add

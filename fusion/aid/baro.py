@@ -29,7 +29,7 @@ class BaroAltitude(ModelBase):
         return cls(cfg.baro.sigma_m**2)
 
     def linearise(self, x: Vec) -> Linearised:
-        return Linearised((float(x[_BB] - x[_PD]),), _H_BARO, None, (self.var_m2,))
+        return Linearised((x.item(_BB) - x.item(_PD),), _H_BARO, None, (self.var_m2,))
 
     def jacobian(self, x: Vec) -> Mat:
         return _H_BARO[None, :].copy()

@@ -15,7 +15,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Any, ClassVar, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -54,7 +54,7 @@ class OpticalDisplacement(ModelBase):
     dN + sin(psi) dE) / h_base``.  ``focal_px`` (``f``): the virtual nadir camera's focal length (px); ``base_yaw_rad``:
     the AHRS heading the cycle's frame was built with (rad), so an AHRS heading error shows only in the label
     (``- yaw_bias``); ``opt_rot``: what the optical estimator's own attitude adds.  ``var_px2``: the noise variance of
-    each axis (uncorrelated, :meth:`noise_var_px2`; NaN when the model is built for its geometry only).
+    each axis (uncorrelated, :meth:`for_step_with`; NaN when the model is built for its geometry only).
     """
 
     focal_px: float
@@ -63,7 +63,14 @@ class OpticalDisplacement(ModelBase):
 
     @classmethod
     def for_step(cls, step: GsoeStep, cfg: EkfConfig) -> OpticalDisplacement:
-        return cls(float(step.focal_px), float(step.base_yaw_rad), cls.noise_var_px2(step, cfg))
+        return cls.for_step_with(step, noise_terms(cfg))
+
+    @classmethod
+    def for_step_with(cls, step: GsoeStep, terms: NoiseTerms) -> OpticalDisplacement:
+        """:meth:`for_step` with the configuration's :func:`noise_terms` read once (the per-step path).  Each axis's
+        noise variance is the sum of the squares of :meth:`noise_sigma_px` (matcher and attitude, uncorrelated)."""
+        m, a = _sigmas_px(step, terms)
+        return cls(float(step.focal_px), float(step.base_yaw_rad), m * m + a * a)
 
     def _parts(self, x: Vec) -> tuple[float, float, float, float, float, float]:
         xl = x.tolist()
@@ -121,24 +128,42 @@ class OpticalDisplacement(ModelBase):
         relative attitude error between base and current frame, ``optical.att_rel_sigma_rad +
         optical.att_rel_sigma_per_rad * rel_rot_rad + optical.att_rel_sigma_rad_per_s * (t - base_t)``
         (independent of altitude: an angle error moves the image by ``f * angle`` pixels at any height)."""
-        o = cfg.optical
-        psr = step.quality.psr
-        q = psr / o.psr_ref if not math.isnan(psr) else 0.0
-        q = min(1.0, max(o.quality_floor, q))
-        rel = step.rel_rot_rad if math.isfinite(step.rel_rot_rad) else o.rel_rot_fallback_rad
-        elapsed_s = max(0, step.t_us - step.base_t_us) * 1e-6
-        att_rad = o.att_rel_sigma_rad + o.att_rel_sigma_per_rad * abs(rel) + o.att_rel_sigma_rad_per_s * elapsed_s
-        match = o.match_sigma_px / q
-        ssd = o.ssd_sigma_factor * step.quality.match_sigma_px
-        if ssd > match:                                   # False for nan (no SSD precision: the PSR model alone)
-            match = ssd
-        return match, step.focal_px * att_rad
+        return _sigmas_px(step, noise_terms(cfg))
 
-    @staticmethod
-    def noise_var_px2(step: GsoeStep, cfg: EkfConfig) -> float:
-        """Variance (px^2) of each of ``dx_px``, ``dy_px`` (uncorrelated): matcher plus attitude-induced error."""
-        m, a = OpticalDisplacement.noise_sigma_px(step, cfg)
-        return m * m + a * a
+
+class NoiseTerms(NamedTuple):
+    """The ``optical`` configuration numbers of :meth:`OpticalDisplacement.noise_sigma_px` (its units)."""
+
+    psr_ref: float
+    quality_floor: float
+    rel_rot_fallback_rad: float
+    att_rel_sigma_rad: float
+    att_rel_sigma_per_rad: float
+    att_rel_sigma_rad_per_s: float
+    match_sigma_px: float
+    ssd_sigma_factor: float
+
+
+def noise_terms(cfg: EkfConfig) -> NoiseTerms:
+    """The numbers of the optical noise model in ``cfg``, read once."""
+    o = cfg.optical
+    return NoiseTerms(o.psr_ref, o.quality_floor, o.rel_rot_fallback_rad, o.att_rel_sigma_rad, o.att_rel_sigma_per_rad,
+                      o.att_rel_sigma_rad_per_s, o.match_sigma_px, o.ssd_sigma_factor)
+
+
+def _sigmas_px(step: GsoeStep, o: NoiseTerms) -> tuple[float, float]:
+    """:meth:`OpticalDisplacement.noise_sigma_px` from the configuration's numbers."""
+    psr = step.quality.psr
+    q = psr / o.psr_ref if not math.isnan(psr) else 0.0
+    q = min(1.0, max(o.quality_floor, q))
+    rel = step.rel_rot_rad if math.isfinite(step.rel_rot_rad) else o.rel_rot_fallback_rad
+    elapsed_s = max(0, step.t_us - step.base_t_us) * 1e-6
+    att_rad = o.att_rel_sigma_rad + o.att_rel_sigma_per_rad * abs(rel) + o.att_rel_sigma_rad_per_s * elapsed_s
+    match = o.match_sigma_px / q
+    ssd = o.ssd_sigma_factor * step.quality.match_sigma_px
+    if ssd > match:                                   # False for nan (no SSD precision: the PSR model alone)
+        match = ssd
+    return match, step.focal_px * att_rad
 
 
 class OpticalAid(AidSource):
@@ -152,6 +177,7 @@ class OpticalAid(AidSource):
         self._clone_cycle: int | None = None
         self._last_cycle_pushed: int | None = None
         self._min_height_m, self._gate = self.cfg.optical.min_height_m, self.cfg.gates.optical_nis
+        self._noise = noise_terms(self.cfg)
 
     def accept(self, t_us: Any, sample: GsoeStep) -> tuple[Any, Any] | None:
         step, row = sample, self.row
@@ -196,7 +222,7 @@ class OpticalAid(AidSource):
         if not (step.valid and step.quality.valid):
             row.set(t, rejected=True, reason=REASON_INVALID_MATCH)
             return True
-        model = OpticalDisplacement.for_step(step, self.cfg)
+        model = OpticalDisplacement.for_step_with(step, self._noise)
         if model.height_base_m(self.core.x) < self._min_height_m:
             row.set(t, rejected=True, reason=REASON_LOW_HEIGHT)
             return True
