@@ -71,6 +71,7 @@ Bad input
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 from dataclasses import dataclass
@@ -178,10 +179,11 @@ def to_intensity(image: NDArray) -> NDArray[np.float32]:
     raise ValueError(f"image: expected (H, W), (H, W, 1), (H, W, 3) BGR or (H, W, 4) BGRA, got shape {image.shape}")
 
 
-def _quadratic_hessian(n3: NDArray) -> tuple[float, float, float]:
+def _quadratic_hessian(n3: list[list[float]]) -> tuple[float, float, float]:
     """``(h_xx, h_yy, h_xy)``: the Hessian of the least-squares quadratic ``a + b x + c y + d x^2 + e x y + f y^2``
-    fitted to a 3x3 SSD neighbourhood (row-major, centre at [1, 1]; ``h_xx = 2 d``, ``h_yy = 2 f``, ``h_xy = e``)."""
-    (v00, v01, v02), (v10, v11, v12), (v20, v21, v22) = n3.tolist()
+    fitted to a 3x3 SSD neighbourhood (rows of floats, centre at [1][1]; ``h_xx = 2 d``, ``h_yy = 2 f``,
+    ``h_xy = e``)."""
+    (v00, v01, v02), (v10, v11, v12), (v20, v21, v22) = n3
     left, mid_c, right = v00 + v10 + v20, v01 + v11 + v21, v02 + v12 + v22
     top, mid_r, bottom = v00 + v01 + v02, v10 + v11 + v12, v20 + v21 + v22
     return (right + left - 2.0 * mid_c) / 3.0, (bottom + top - 2.0 * mid_r) / 3.0, (v00 + v22 - v02 - v20) / 4.0
@@ -200,7 +202,7 @@ def ssd_precision_px(n3: NDArray, ssd_min: float, n_px: int) -> float:
     seen at 0.35 m/px: 0.2 px against 0.03-0.05 px on the 10 cm tiles, with sensor noise of sigma 3; the errors'
     normalised squares average 1.5-1.9 on the real tiles against the chi-square's 2, tests/test_matching.py).
     """
-    return _precision_from_hessian(_quadratic_hessian(n3), ssd_min, n_px)
+    return _precision_from_hessian(_quadratic_hessian(np.asarray(n3, dtype=float).tolist()), ssd_min, n_px)
 
 
 def _precision_from_hessian(h: tuple[float, float, float], ssd_min: float, n_px: int) -> float:
@@ -213,15 +215,15 @@ def _precision_from_hessian(h: tuple[float, float, float], ssd_min: float, n_px:
     return math.sqrt(s2 * (hxx + hyy) / det)
 
 
-def _quadratic_offset(n3: NDArray, h: tuple[float, float, float]) -> tuple[float, float]:
-    """Sub-pixel offset (dx, dy) of the minimum of a 3x3 SSD neighbourhood (row-major, centre at [1, 1]), given the
-    fit's Hessian ``h`` (:func:`_quadratic_hessian`).
+def _quadratic_offset(n3: list[list[float]], h: tuple[float, float, float]) -> tuple[float, float]:
+    """Sub-pixel offset (dx, dy) of the minimum of a 3x3 SSD neighbourhood (rows of floats, centre at [1][1]),
+    given the fit's Hessian ``h`` (:func:`_quadratic_hessian`).
 
     Least squares of ``a + b x + c y + d x^2 + e x y + f y^2`` on x, y in {-1, 0, 1}; on this grid the normal
     equations decouple into the column/row sums below.  When the fit is not a bowl or its bottom lies farther than
     ``_MAX_SUBPIXEL_OFFSET_PX``, separable parabolas through the centre row and column are used instead.
     """
-    (v00, v01, v02), (v10, v11, v12), (v20, v21, v22) = n3.tolist()
+    (v00, v01, v02), (v10, v11, v12), (v20, v21, v22) = n3
     left, right = v00 + v10 + v20, v02 + v12 + v22
     top, bottom = v00 + v01 + v02, v20 + v21 + v22
     b = (right - left) / 6.0
@@ -251,26 +253,34 @@ def _gauss_newton(base: NDArray[np.float32], tpl: NDArray[np.float32], x: float,
     +-``_MAX_SUBPIXEL_OFFSET_PX`` neighbourhood of the discrete minimum (iu, iv).
     """
     th, tw = tpl.shape
-    # twice the central differences of the interior, x then y, as the rows of one (2, n) matrix (few NumPy calls:
-    # this runs every frame); the factor 2 of the gradient is the factor 1/2 of the steps below
-    G = np.empty((2, th - 2, tw - 2), np.float32)
+    # twice the central differences of the interior, x then y, and the interior itself as the rows of one (3, n)
+    # matrix, so that one product gives the normal matrix and the template's projection G T (few NumPy calls: this
+    # runs every frame); the factor 2 of the gradient is the factor 1/2 of the steps below
+    G = np.empty((3, th - 2, tw - 2), np.float32)
     np.subtract(tpl[1:-1, 2:], tpl[1:-1, :-2], out=G[0])
     np.subtract(tpl[2:, 1:-1], tpl[:-2, 1:-1], out=G[1])
-    Gm = G.reshape(2, -1)
-    (hxx, hxy), (_, hyy) = Gm.dot(Gm.T).tolist()
+    G[2] = tpl[1:-1, 1:-1]
+    G3 = G.reshape(3, -1)
+    Gm = G3[:2]
+    (hxx, hxy, tx), (_, hyy, ty) = Gm.dot(G3.T).tolist()
     det = hxx * hyy - hxy * hxy
     tr = hxx + hyy
     # lam_min / lam_max >= det / tr^2 of the 2x2 normal matrix; small means texture along one direction only
     if not (tr > 0.0 and det > _GN_MIN_EIG_RATIO * tr * tr):
         return None
-    inner = tpl[1:-1, 1:-1]
+    # the residual's projection G (I(x) - T) is G I(x) - G T: each step samples the base straight into a flat
+    # vector (one getRectSubPix and one product per step)
+    sampled = np.empty((th - 2) * (tw - 2), np.float32)
+    patch = sampled.reshape(th - 2, tw - 2)
     size = (tw - 2, th - 2)
     # getRectSubPix takes the patch centre: the interior's first sample is at (x + 1, y + 1)
     cx, cy = 1.0 + (tw - 3) / 2.0, 1.0 + (th - 3) / 2.0
     lim = _MAX_SUBPIXEL_OFFSET_PX
     for _ in range(GN_ITERATIONS):
-        err = np.subtract(cv2.getRectSubPix(base, size, (x + cx, y + cy)), inner)
-        bx, by = Gm.dot(err.reshape(-1)).tolist()
+        cv2.getRectSubPix(base, size, (x + cx, y + cy), patch=patch)
+        bx, by = Gm.dot(sampled).tolist()
+        bx -= tx
+        by -= ty
         x -= 2.0 * (hyy * bx - hxy * by) / det
         y -= 2.0 * (hxx * by - hxy * bx) / det
         if not (abs(x - iu) <= lim and abs(y - iv) <= lim):
@@ -281,37 +291,38 @@ def _gauss_newton(base: NDArray[np.float32], tpl: NDArray[np.float32], x: float,
 _KERNEL_3X3 = np.ones((3, 3), np.uint8)
 
 
+@functools.lru_cache(maxsize=1024)
+def _sidelobe_mask(h: int, w: int, r0: int, r1: int, c0: int, c1: int) -> NDArray[np.uint8]:
+    """The sidelobe of an (h, w) surface as an OpenCV mask: 255 outside rows r0..r1-1 x columns c0..c1-1, 0 inside
+    (read-only: shared by every surface of that shape and window)."""
+    mask = np.full((h, w), 255, np.uint8)
+    mask[r0:r1, c0:c1] = 0
+    mask.flags.writeable = False
+    return mask
+
+
 def _log_psr_and_gap(surface: NDArray, iu: int, iv: int, exclude: int, floor: float) -> tuple[float, float]:
     """Log-domain PSR of the SSD minimum at (iu, iv) (column, row) and its gap to the deepest other local minimum,
     both in sidelobe standard deviations of the log surface; the sidelobe is ``surface`` outside the excluded
-    window.  Its sums are the whole log surface's (one ``cv2.meanStdDev``, in double) minus the window's.
+    window (its mean and standard deviation: one masked ``cv2.meanStdDev``, in double).
     """
-    log_s = cv2.log(np.maximum(surface, np.float32(floor)))
-    mean, std = cv2.meanStdDev(log_s)
-    n_all = log_s.size
-    m, sd = float(mean[0, 0]), float(std[0, 0])
-    h, w = log_s.shape
-    rows = slice(max(iv - exclude, 0), min(iv + exclude + 1, h))
-    cols = slice(max(iu - exclude, 0), min(iu + exclude + 1, w))
-    win = log_s[rows, cols]
-    n = n_all - win.size
-    if n < 2:
+    h, w = surface.shape
+    r0, r1 = max(iv - exclude, 0), min(iv + exclude + 1, h)
+    c0, c1 = max(iu - exclude, 0), min(iu + exclude + 1, w)
+    if h * w - (r1 - r0) * (c1 - c0) < 2:
         return 0.0, 0.0
-    win_mean, win_std = cv2.meanStdDev(win)
-    wm, ws = float(win_mean[0, 0]), float(win_std[0, 0])
-    s1 = n_all * m - win.size * wm
-    s2 = n_all * (sd * sd + m * m) - win.size * (ws * ws + wm * wm)
-    side_mean = s1 / n
-    side_std = math.sqrt(max(s2 / n - side_mean * side_mean, 0.0))
+    side = _sidelobe_mask(h, w, r0, r1, c0, c1)
+    log_s = cv2.log(np.maximum(surface, floor))
+    mean, std = cv2.meanStdDev(log_s, mask=side)
+    side_mean, side_std = float(mean[0, 0]), float(std[0, 0])
     if not (side_std > 0.0 and math.isfinite(side_std)):
         return 0.0, 0.0
     l_min = float(log_s[iv, iu])
     psr = (side_mean - l_min) / side_std
-    # other local minima: points no higher than their 8 neighbours, outside the excluded window (where the eroded
-    # surface is set below everything)
-    eroded = cv2.erode(log_s, _KERNEL_3X3, borderType=cv2.BORDER_REPLICATE)
-    eroded[rows, cols] = -np.inf
-    other_min, _, loc, _ = cv2.minMaxLoc(log_s, mask=cv2.compare(log_s, eroded, cv2.CMP_LE))
+    # other local minima: points no higher than their 8 neighbours (erosion's default border, +inf, keeps an edge
+    # point's neighbourhood to the surface), in the sidelobe
+    local_min = cv2.compare(log_s, cv2.erode(log_s, _KERNEL_3X3), cv2.CMP_LE)
+    other_min, _, loc, _ = cv2.minMaxLoc(log_s, mask=cv2.bitwise_and(local_min, side))
     gap = (other_min - l_min) / side_std if loc[0] >= 0 else math.inf     # (-1, -1): no other valley in view
     return (psr if math.isfinite(psr) else 0.0), gap
 
@@ -500,7 +511,7 @@ def _result(base32: NDArray[np.float32], tpl32: NDArray[np.float32], surface: ND
     psr, gap = _log_psr_and_gap(surface, lu, lv, cfg.sidelobe_exclude_px, floor)
     valid = (not on_border) and psr >= cfg.psr_min and tpl_std >= cfg.texture_std_min and gap >= AMBIGUITY_MIN_GAP
     # off the border the minimum has its full 3x3 neighbourhood (the local searches' window keeps a ring round it)
-    n3 = surface[lv - 1:lv + 2, lu - 1:lu + 2] if not on_border else None
+    n3 = surface[lv - 1:lv + 2, lu - 1:lu + 2].tolist() if not on_border else None
     hess = _quadratic_hessian(n3) if n3 is not None else None
     sigma = _precision_from_hessian(hess, ssd_min, th * tw) if hess is not None else math.nan
     quality = MatchQuality(psr=psr, texture_std=tpl_std, ssd_per_px=max(ssd_min, 0.0) / (th * tw),

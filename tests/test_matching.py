@@ -16,7 +16,14 @@ import numpy as np
 import pytest
 
 from gsoe.config import MatchConfig
-from gsoe.matching import THREE_STEP_FIRST_STEP_PX, MatchResult, match_template, ssd_precision_px, to_intensity
+from gsoe.matching import (
+    SSD_FLOOR_PER_PX,
+    THREE_STEP_FIRST_STEP_PX,
+    MatchResult,
+    match_template,
+    ssd_precision_px,
+    to_intensity,
+)
 from tests.conftest import ROOT
 
 TEXTURES = ROOT / "sim" / "data" / "textures"
@@ -116,6 +123,69 @@ def test_ssd_precision_is_the_fitted_quadratic_surface_formula():
     assert math.isnan(ssd_precision_px(saddle, ssd_min, n_px))
     assert math.isnan(ssd_precision_px(n3, math.nan, n_px))
     assert ssd_precision_px(n3, 0.0, n_px) == 0.0
+
+
+def _plain_log_psr_and_gap(surface: np.ndarray, iu: int, iv: int, exclude: int, floor: float) -> tuple[float, float]:
+    """The module docstring's PSR and ambiguity gap, written out in float64 NumPy."""
+    L = np.log(np.maximum(surface.astype(np.float64), floor))
+    h, w = L.shape
+    side = np.ones((h, w), bool)
+    side[max(iv - exclude, 0):iv + exclude + 1, max(iu - exclude, 0):iu + exclude + 1] = False
+    mean, std = L[side].mean(), L[side].std()
+    padded = np.pad(L, 1, constant_values=np.inf)
+    neighbours = np.stack([padded[1 + dv:1 + dv + h, 1 + du:1 + du + w]
+                           for dv in (-1, 0, 1) for du in (-1, 0, 1)])
+    local_min = (L <= neighbours.min(axis=0)) & side
+    gap = (L[local_min].min() - L[iv, iu]) / std if local_min.any() else math.inf
+    return (mean - L[iv, iu]) / std, gap
+
+
+def test_log_psr_and_gap_are_the_plain_sidelobe_statistics():
+    """The matcher's PSR and gap (masked OpenCV statistics on the float32 log surface) against the definitions in
+    float64, on random surfaces with values under the floor, minima at the edges and in the middle."""
+    from gsoe.matching import _log_psr_and_gap
+
+    rng = np.random.default_rng(5)
+    floor = 361 * SSD_FLOOR_PER_PX
+    for k in range(40):
+        h, w = (13, 13) if k % 2 else (9, 17)
+        surface = (rng.random((h, w)) * 2e5).astype(np.float32)
+        iv, iu = int(rng.integers(0, h)), int(rng.integers(0, w))
+        surface[iv, iu] = floor * (0.5 if k % 3 == 0 else 3.0)
+        surface.ravel()[rng.integers(0, h * w, 3)] *= np.float32(1e-3)
+        psr, gap = _log_psr_and_gap(surface, iu, iv, 2, floor)
+        plain_psr, plain_gap = _plain_log_psr_and_gap(surface, iu, iv, 2, floor)
+        assert psr == pytest.approx(plain_psr, rel=1e-5, abs=1e-5)
+        assert gap == pytest.approx(plain_gap, rel=1e-5, abs=1e-5)
+    # a surface with nothing outside the excluded window is not a match
+    assert _log_psr_and_gap(np.ones((3, 3), np.float32), 1, 1, 2, floor) == (0.0, 0.0)
+
+
+def test_gauss_newton_is_the_plain_inverse_compositional_step():
+    """``_gauss_newton`` against the inverse-compositional step written out in float64 (template central
+    differences, bilinear base samples): ``x <- x - (G G')^-1 G (I(x) - T)``, ``GN_ITERATIONS`` times."""
+    from gsoe.matching import GN_ITERATIONS, _gauss_newton
+
+    rng = np.random.default_rng(8)
+    base = cv2.GaussianBlur((rng.random((60, 70)) * 255).astype(np.float32), (0, 0), 1.5)
+    tpl = cv2.getRectSubPix(base, (19, 19), (30.3 + 9.0, 20.6 + 9.0))
+    t = tpl.astype(np.float64)
+    g = np.stack([(t[1:-1, 2:] - t[1:-1, :-2]) / 2.0, (t[2:, 1:-1] - t[:-2, 1:-1]) / 2.0]).reshape(2, -1)
+    yy, xx = np.mgrid[1:18, 1:18].astype(np.float64)
+    b64 = base.astype(np.float64)
+    x, y = 30.0, 21.0
+    for _ in range(GN_ITERATIONS):
+        px, py = xx + x, yy + y
+        x0, y0 = np.floor(px).astype(int), np.floor(py).astype(int)
+        fx, fy = px - x0, py - y0
+        sample = ((1 - fy) * ((1 - fx) * b64[y0, x0] + fx * b64[y0, x0 + 1])
+                  + fy * ((1 - fx) * b64[y0 + 1, x0] + fx * b64[y0 + 1, x0 + 1]))
+        dx, dy = np.linalg.solve(g @ g.T, g @ (sample - t[1:-1, 1:-1]).ravel())
+        x, y = x - dx, y - dy
+    got = _gauss_newton(base, tpl, 30.0, 21.0, 30, 21)
+    assert got is not None
+    assert got == pytest.approx((x, y), abs=1e-3)
+    assert got == pytest.approx((30.3, 20.6), abs=0.05)
 
 
 @pytest.mark.parametrize("tile", list(TILES))
