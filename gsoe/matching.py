@@ -46,7 +46,7 @@ Quality (:class:`common.samples.MatchQuality`)
     a match from the best of many non-matches: true matches' 1st percentile 3.9 (with or without sensor noise of
     sigma 2), templates from elsewhere median 2.6, 22 % >= 3, 5 % >= 4.  The floor (8-bit quantisation noise)
     keeps an exact copy finite.  For the exhaustive search the sidelobe statistics come from the whole log surface
-    (one ``cv2.meanStdDev``, minus the window's sums); the searches do not compute the whole surface, so their
+    (one ``cv2.meanStdDev`` masked to the sidelobe); the searches do not compute the whole surface, so their
     sidelobe is the ring of a local window of half-width ``e + LOCAL_RING_PX`` around the optimum (one small
     matchTemplate): a local PSR, measuring the depth of the minimum but not ambiguity beyond the ring.
     ``texture_std``: the template's intensity standard deviation.  ``ssd_per_px``: the SSD at the discrete
@@ -312,7 +312,8 @@ def _log_psr_and_gap(surface: NDArray, iu: int, iv: int, exclude: int, floor: fl
     if h * w - (r1 - r0) * (c1 - c0) < 2:
         return 0.0, 0.0
     side = _sidelobe_mask(h, w, r0, r1, c0, c1)
-    log_s = cv2.log(np.maximum(surface, floor))
+    log_s = np.maximum(surface, floor)
+    np.log(log_s, out=log_s)
     mean, std = cv2.meanStdDev(log_s, mask=side)
     side_mean, side_std = float(mean[0, 0]), float(std[0, 0])
     if not (side_std > 0.0 and math.isfinite(side_std)):

@@ -93,7 +93,9 @@ class PatchSampler:
         # ground offsets of the grid nodes in pixels: forward (x) and right (y) in the heading frame, one row a node
         self._nodes_fr = np.column_stack([(ref_uv[1] - vv).ravel(), (uu - ref_uv[0]).ravel()])
         self._grid_shape = uu.shape
-        self._rays_h = np.ones((self._nodes_fr.shape[0], 3))
+        # the nodes' rays in the heading frame, (forward, right, 1 / scale) pixels: ground offset over height, up to
+        # the length (which projection ignores), so that only the last column changes from frame to frame
+        self._rays_h = np.column_stack([self._nodes_fr, np.ones(self._nodes_fr.shape[0])])
         # the grid's four corner nodes (row-major): every node's ray lies in their cone
         nu, nv = nodes_u.size, nodes_v.size
         self._corners = np.array(sorted({0, nu - 1, (nv - 1) * nu, nv * nu - 1}), dtype=np.intp)
@@ -102,6 +104,7 @@ class PatchSampler:
         self._A_joint = np.kron(self._A_v, self._A_u) if joint else None
         # the joint product's float32 2-channel map (x, y) per pixel, written in place each frame
         self._xy = np.empty((height_px, width_px, 2), np.float32) if joint else None
+        self._xy_flat = self._xy.reshape(-1, 2) if self._xy is not None else None
         self._R_z: tuple[float, NDArray[np.float64]] = (math.nan, np.eye(3))    # the last heading's R_z
 
     def R_hc(self, R_cn: NDArray[np.float64], base_yaw_rad: float) -> NDArray[np.float64]:
@@ -112,11 +115,14 @@ class PatchSampler:
 
     def _pixels(self, R_hc: NDArray[np.float64], scale: float,
                 offset_fwd_right_px: tuple[float, float]) -> NDArray[np.float64] | None:
-        """Raw-frame pixels (N, 2) of the grid nodes, or None when one leaves the frame.  (A per-frame path of a
-        few small arrays: every NumPy call costs about a microsecond, so they are few.)"""
-        rays_h = self._rays_h
-        nodes = self._nodes_fr if offset_fwd_right_px == (0.0, 0.0) else self._nodes_fr + offset_fwd_right_px
-        np.multiply(nodes, scale, out=rays_h[:, :2])
+        """Raw-frame pixels (N, 2) of the grid nodes, or None when one leaves the frame; ``scale`` > 0.  (A
+        per-frame path of a few small arrays: every NumPy call costs about a microsecond, so they are few.)"""
+        if offset_fwd_right_px == (0.0, 0.0):
+            rays_h = self._rays_h
+        else:
+            rays_h = np.empty_like(self._rays_h)
+            np.add(self._nodes_fr, offset_fwd_right_px, out=rays_h[:, :2])
+        rays_h[:, 2] = 1.0 / scale
         return self.camera.project_in_frame(rays_h @ R_hc, self._corners)
 
     def sample_map(self, R_cn: NDArray[np.float64], base_yaw_rad: float, scale: float,
@@ -148,29 +154,26 @@ class PatchSampler:
     def sample_h(self, raw: Frame, R_hc: NDArray[np.float64], scale: float,
                  offset_fwd_right_px: tuple[float, float] = (0.0, 0.0)) -> Patch:
         """:meth:`sample` from the camera-to-heading-frame rotation ``R_hc`` (:meth:`R_hc`)."""
-        joint = self._A_joint
-        xy = self._xy
+        joint, xy = self._A_joint, self._xy
+        map2: NDArray[np.float32] | None
         if joint is None or xy is None:
-            map_x, map_y, ok = self.sample_map_h(R_hc, scale, offset_fwd_right_px)
-            xy = None
+            map1, map2, ok = self.sample_map_h(R_hc, scale, offset_fwd_right_px)
         else:                         # one product, one 2-channel map (x, y) per pixel
             px = self._pixels(R_hc, scale, offset_fwd_right_px)
             ok = px is not None
             if px is not None:
-                np.matmul(joint, px, out=xy.reshape(-1, 2))
-                map_x, map_y = xy[:, :, 0], xy[:, :, 1]
+                np.matmul(joint, px, out=self._xy_flat)
+            map1, map2 = xy, None
         if not ok:
             return Patch(np.zeros((self.height_px, self.width_px), np.float32), False)
         if callable(raw):
+            map_x, map_y = (map1, map2) if map2 is not None else (map1[:, :, 0], map1[:, :, 1])
             w, h = self.camera.size_px
             roi = (max(0, int(map_x.min()) - 1), max(0, int(map_y.min()) - 1),
                    min(w, int(map_x.max()) + 3), min(h, int(map_y.max()) + 3))
             raw = raw(roi)
-        if xy is None:
-            patch = cv2.remap(raw, map_x, map_y, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        else:
-            patch = cv2.remap(raw, xy, None, interpolation=cv2.INTER_LINEAR,   # type: ignore[call-overload]
-                              borderMode=cv2.BORDER_REPLICATE)
+        patch = cv2.remap(raw, map1, map2, interpolation=cv2.INTER_LINEAR,   # type: ignore[arg-type]
+                          borderMode=cv2.BORDER_REPLICATE)
         return Patch(to_intensity(patch), True)
 
 
