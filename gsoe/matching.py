@@ -257,8 +257,8 @@ def _gauss_newton(base: NDArray[np.float32], tpl: NDArray[np.float32], x: float,
     # matrix, so that one product gives the normal matrix and the template's projection G T (few NumPy calls: this
     # runs every frame); the factor 2 of the gradient is the factor 1/2 of the steps below
     G = np.empty((3, th - 2, tw - 2), np.float32)
-    np.subtract(tpl[1:-1, 2:], tpl[1:-1, :-2], out=G[0])
-    np.subtract(tpl[2:, 1:-1], tpl[:-2, 1:-1], out=G[1])
+    cv2.subtract(tpl[1:-1, 2:], tpl[1:-1, :-2], dst=G[0])
+    cv2.subtract(tpl[2:, 1:-1], tpl[:-2, 1:-1], dst=G[1])
     G[2] = tpl[1:-1, 1:-1]
     G3 = G.reshape(3, -1)
     Gm = G3[:2]
@@ -323,7 +323,8 @@ def _log_psr_and_gap(surface: NDArray, iu: int, iv: int, exclude: int, floor: fl
     # other local minima: points no higher than their 8 neighbours (erosion's default border, +inf, keeps an edge
     # point's neighbourhood to the surface), in the sidelobe
     local_min = cv2.compare(log_s, cv2.erode(log_s, _KERNEL_3X3), cv2.CMP_LE)
-    other_min, _, loc, _ = cv2.minMaxLoc(log_s, mask=cv2.bitwise_and(local_min, side))
+    local_min[r0:r1, c0:c1] = 0
+    other_min, _, loc, _ = cv2.minMaxLoc(log_s, mask=local_min)
     gap = (other_min - l_min) / side_std if loc[0] >= 0 else math.inf     # (-1, -1): no other valley in view
     return (psr if math.isfinite(psr) else 0.0), gap
 
