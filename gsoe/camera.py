@@ -105,9 +105,12 @@ class CameraModel:
         elif not (rays_c[:, 2] > c * np.sqrt(np.einsum("ij,ij->i", rays_c, rays_c))).all():
             return None
         if self.config.model == "fisheye":
-            # the lens applied to the normalised coordinates (z > 0 here): projectPoints' pixels to rounding,
-            # without its pose and its Jacobians (half the cost)
-            img = cv2.fisheye.distortPoints(cv2.convertPointsFromHomogeneous(rays_c), self.K, self.D)
+            # the lens applied to the normalised coordinates: projectPoints' pixels to rounding, without its pose
+            # and its Jacobians (half the cost); OpenCV's division by z wants z > 0, which a field narrower than a
+            # half-space has just ensured
+            norm = (cv2.convertPointsFromHomogeneous(rays_c) if c > 0.0
+                    else (rays_c[:, :2] / rays_c[:, 2:]).reshape(-1, 1, 2))
+            img = cv2.fisheye.distortPoints(norm, self.K, self.D)
         else:
             img, _ = cv2.projectPoints(rays_c.reshape(-1, 1, 3), _ZERO3, _ZERO3, self.K, self.D)
         px = cast("NDArray[np.float64]", img.reshape(-1, 2))    # (a string: no runtime subscript per call)
