@@ -301,32 +301,38 @@ def _sidelobe_mask(h: int, w: int, r0: int, r1: int, c0: int, c1: int) -> NDArra
     return mask
 
 
-def _log_psr_and_gap(surface: NDArray, iu: int, iv: int, exclude: int, floor: float) -> tuple[float, float]:
-    """Log-domain PSR of the SSD minimum at (iu, iv) (column, row) and its gap to the deepest other local minimum,
-    both in sidelobe standard deviations of the log surface; the sidelobe is ``surface`` outside the excluded
-    window (its mean and standard deviation: one masked ``cv2.meanStdDev``, in double).
+def _log_psr_and_unambiguous(surface: NDArray, iu: int, iv: int, exclude: int, floor: float) -> tuple[float, bool]:
+    """Log-domain PSR of the SSD minimum at (iu, iv) (column, row), in sidelobe standard deviations of the log
+    surface, and whether the match is unambiguous: no other local minimum in the sidelobe (``surface`` outside the
+    excluded window) within ``AMBIGUITY_MIN_GAP`` of those standard deviations of the minimum.  The sidelobe's
+    statistics come from one masked ``cv2.meanStdDev`` (in double).  The sidelobe's lowest point bounds its local
+    minima from below, so when it lies far enough above the minimum, as it does for most matches, the local minima
+    need not be found.
     """
     h, w = surface.shape
     r0, r1 = max(iv - exclude, 0), min(iv + exclude + 1, h)
     c0, c1 = max(iu - exclude, 0), min(iu + exclude + 1, w)
     if h * w - (r1 - r0) * (c1 - c0) < 2:
-        return 0.0, 0.0
+        return 0.0, False
     side = _sidelobe_mask(h, w, r0, r1, c0, c1)
     log_s = np.maximum(surface, floor)
     np.log(log_s, out=log_s)
     mean, std = cv2.meanStdDev(log_s, mask=side)
     side_mean, side_std = float(mean[0, 0]), float(std[0, 0])
     if not (side_std > 0.0 and math.isfinite(side_std)):
-        return 0.0, 0.0
+        return 0.0, False
     l_min = float(log_s[iv, iu])
     psr = (side_mean - l_min) / side_std
+    psr = psr if math.isfinite(psr) else 0.0
+    if (cv2.minMaxLoc(log_s, mask=side)[0] - l_min) / side_std >= AMBIGUITY_MIN_GAP:
+        return psr, True
     # other local minima: points no higher than their 8 neighbours (erosion's default border, +inf, keeps an edge
     # point's neighbourhood to the surface), in the sidelobe
     local_min = cv2.compare(log_s, cv2.erode(log_s, _KERNEL_3X3), cv2.CMP_LE)
     local_min[r0:r1, c0:c1] = 0
     other_min, _, loc, _ = cv2.minMaxLoc(log_s, mask=local_min)
-    gap = (other_min - l_min) / side_std if loc[0] >= 0 else math.inf     # (-1, -1): no other valley in view
-    return (psr if math.isfinite(psr) else 0.0), gap
+    # (-1, -1): no other valley in view
+    return psr, loc[0] < 0 or (other_min - l_min) / side_std >= AMBIGUITY_MIN_GAP
 
 
 class _SsdProbe:
@@ -510,8 +516,8 @@ def _result(base32: NDArray[np.float32], tpl32: NDArray[np.float32], surface: ND
     ssd_min = float(surface[lv, lu])
     if not (math.isfinite(ssd_max) and math.isfinite(ssd_min)):
         return _invalid("SSD overflow (pixel values far outside the 0-255 scale)")
-    psr, gap = _log_psr_and_gap(surface, lu, lv, cfg.sidelobe_exclude_px, floor)
-    valid = (not on_border) and psr >= cfg.psr_min and tpl_std >= cfg.texture_std_min and gap >= AMBIGUITY_MIN_GAP
+    psr, unambiguous = _log_psr_and_unambiguous(surface, lu, lv, cfg.sidelobe_exclude_px, floor)
+    valid = (not on_border) and psr >= cfg.psr_min and tpl_std >= cfg.texture_std_min and unambiguous
     # off the border the minimum has its full 3x3 neighbourhood (the local searches' window keeps a ring round it)
     n3 = surface[lv - 1:lv + 2, lu - 1:lu + 2].tolist() if not on_border else None
     hess = _quadratic_hessian(n3) if n3 is not None else None

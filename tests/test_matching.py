@@ -140,25 +140,39 @@ def _plain_log_psr_and_gap(surface: np.ndarray, iu: int, iv: int, exclude: int, 
     return (mean - L[iv, iu]) / std, gap
 
 
-def test_log_psr_and_gap_are_the_plain_sidelobe_statistics():
-    """The matcher's PSR and gap (masked OpenCV statistics on the float32 log surface) against the definitions in
-    float64, on random surfaces with values under the floor, minima at the edges and in the middle."""
-    from gsoe.matching import _log_psr_and_gap
+def test_log_psr_and_ambiguity_are_the_plain_sidelobe_statistics():
+    """The matcher's PSR (masked OpenCV statistics on the float32 log surface) and its ambiguity decision (settled
+    by the sidelobe's lowest point when it can) against the definitions in float64: random surfaces with values
+    under the floor, minima at the edges and in the middle, some with a second deep valley, and cones whose
+    sidelobe minimum lies on the main valley's slope (not a local minimum) with a wide sidelobe spread."""
+    from gsoe.matching import AMBIGUITY_MIN_GAP, _log_psr_and_unambiguous
 
     rng = np.random.default_rng(5)
     floor = 361 * SSD_FLOOR_PER_PX
+    cases = []
     for k in range(40):
         h, w = (13, 13) if k % 2 else (9, 17)
         surface = (rng.random((h, w)) * 2e5).astype(np.float32)
         iv, iu = int(rng.integers(0, h)), int(rng.integers(0, w))
         surface[iv, iu] = floor * (0.5 if k % 3 == 0 else 3.0)
-        surface.ravel()[rng.integers(0, h * w, 3)] *= np.float32(1e-3)
-        psr, gap = _log_psr_and_gap(surface, iu, iv, 2, floor)
+        if k % 4 == 0:
+            surface.ravel()[rng.integers(0, h * w, 3)] *= np.float32(1e-3)
+        cases.append((surface, iu, iv))
+    yy, xx = np.mgrid[0:13, 0:13]
+    for a in (0.2, 1.0):
+        cone = a * np.hypot(xx - 6, yy - 6)
+        cone[0, 0] = cone[12, 12] = 40.0                  # spikes: a wide spread, no new valley
+        cases.append(((floor * 2.0 * np.exp(cone)).astype(np.float32), 6, 6))
+    outcomes = {True: 0, False: 0}
+    for surface, iu, iv in cases:
+        psr, unambiguous = _log_psr_and_unambiguous(surface, iu, iv, 2, floor)
         plain_psr, plain_gap = _plain_log_psr_and_gap(surface, iu, iv, 2, floor)
         assert psr == pytest.approx(plain_psr, rel=1e-5, abs=1e-5)
-        assert gap == pytest.approx(plain_gap, rel=1e-5, abs=1e-5)
+        assert unambiguous == (plain_gap >= AMBIGUITY_MIN_GAP)
+        outcomes[unambiguous] += 1
+    assert min(outcomes.values()) >= 5, outcomes
     # a surface with nothing outside the excluded window is not a match
-    assert _log_psr_and_gap(np.ones((3, 3), np.float32), 1, 1, 2, floor) == (0.0, 0.0)
+    assert _log_psr_and_unambiguous(np.ones((3, 3), np.float32), 1, 1, 2, floor) == (0.0, False)
 
 
 def test_gauss_newton_is_the_plain_inverse_compositional_step():
