@@ -115,8 +115,11 @@ class PatchSampler:
 
     def _pixels(self, R_hc: NDArray[np.float64], scale: float,
                 offset_fwd_right_px: tuple[float, float]) -> NDArray[np.float64] | None:
-        """Raw-frame pixels (N, 2) of the grid nodes, or None when one leaves the frame; ``scale`` > 0.  (A
-        per-frame path of a few small arrays: every NumPy call costs about a microsecond, so they are few.)"""
+        """Raw-frame pixels (N, 2) of the grid nodes, or None when one leaves the frame or ``scale`` is not
+        positive.  (A per-frame path of a few small arrays: every NumPy call costs about a microsecond, so they are
+        few.)"""
+        if not scale > 0.0:                    # (NaN too) no ground at that scale: nothing to sample
+            return None
         if offset_fwd_right_px == (0.0, 0.0):
             rays_h = self._rays_h
         else:

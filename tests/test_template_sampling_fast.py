@@ -86,3 +86,14 @@ def test_relative_rotation_from_a_remembered_start_is_the_fresh_one():
             assert got == fresh.relative_rotation(t0_us, t1_us)
     # t0 has left the horizon: no rotation from the memory either
     assert asked.relative_rotation(t0_us, 899 * 3333) is None
+
+
+def test_a_scale_without_ground_gives_an_invalid_patch_not_an_error(camera):
+    """A height ratio that is zero (underflow), negative or NaN reaches the sampler as a scale without ground: the
+    template is an invalid patch and does not fit; a normal ratio samples a valid one."""
+    vcam = _vcam(camera)
+    frame = np.full(camera.size_px[::-1], 128, np.uint8)
+    for ratio in (0.0, -1.0, math.nan):
+        assert not vcam.sample_template(frame, quat.IDENTITY, 0.0, ratio).valid
+        assert not vcam.template_fits(quat.IDENTITY, 0.0, ratio, (0.0, 0.0))
+    assert vcam.sample_template(frame, quat.IDENTITY, 0.0, 1.0).valid
