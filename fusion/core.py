@@ -184,13 +184,13 @@ class FilterCore:
         if a < -COV_RESET_REL_TOL * r0 or d < -COV_RESET_REL_TOL * r1:
             self._cov_reset(row, t_us, m.columns(), innov, var)
             return False
-        det = s00 * s11 - s01 * s01
-        if not (s00 > 0.0 and det > 0.0):
+        c00 = math.sqrt(s00) if s00 > 0.0 else 0.0     # C = [[c00, 0], [c10, c11]]
+        c10 = s01 / c00 if c00 > 0.0 else 0.0
+        c11_2 = s11 - c10 * c10                    # det(S) / s00: not positive (or its rounding) = not definite
+        if not (c00 > 0.0 and c11_2 > 0.0):
             row.set(t_us, rejected=True, reason=REASON_NUMERIC, innovation=innov, innovation_var=var)
             return False
-        c00 = math.sqrt(s00)                      # C = [[c00, 0], [c10, c11]]
-        c10 = s01 / c00
-        c11 = math.sqrt(s11 - c10 * c10)
+        c11 = math.sqrt(c11_2)
         i00, i10, i11 = 1.0 / c00, -c10 / (c00 * c11), 1.0 / c11     # C^-1 = [[i00, 0], [i10, i11]]
         w0, w1 = i00 * y0, i10 * y0 + i11 * y1
         ratio = (w0 * w0 + w1 * w1) / gate_nis

@@ -28,7 +28,7 @@ from fusion.measurements import (
     TrueAirspeed,
 )
 from fusion.state import S, StateLayout
-from fusion.status import REASON_GATE, StatusRow
+from fusion.status import REASON_GATE, REASON_NUMERIC, StatusRow
 from gsoe.rotation import R_nb_from_euler
 from pipeline.config import load_gsoe_config
 from tests.fusion_truth import TruthConfig, filter_config, make_flight, run_ekf
@@ -894,3 +894,20 @@ def test_ahrs_delay_is_the_attitude_time_shift():
     np.testing.assert_allclose(xn[S.vel_ned], dv_ref, atol=1.5e-4)
     x[S.att_delay] = 0.0
     assert np.abs(propagate(x, inc)[0][S.vel_ned] - dv_ref).max() > 1e-3
+
+
+def test_a_singular_two_dimensional_update_is_refused_not_raised():
+    """Two copies of one measurement without noise: S is singular (its Cholesky factor's second pivot is zero or a
+    rounding below it); the update is refused as numeric, the filter unchanged."""
+    rng = np.random.default_rng(3)
+    A = rng.standard_normal((S.dim, S.dim))
+    P = A @ A.T + np.eye(S.dim)
+    x = rng.standard_normal(S.dim)
+    h = rng.standard_normal(S.dim)
+    for scale in (1.0, 1.0 + 1e-15, 3.0):
+        core = FilterCore(x.copy(), P.copy(), np.diag(P).copy())
+        row = StatusRow("test")
+        lin = Linearised((0.0, 0.0), np.vstack([h, scale * h]), None, (0.0, 0.0))
+        assert not core.update(row, 1, (0.1, 0.1 * scale), lin, gate_nis=1e9)
+        assert row.reason == REASON_NUMERIC
+        np.testing.assert_array_equal(core.P, P)
