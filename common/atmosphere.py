@@ -16,6 +16,7 @@ SI inside: Pa, K, m.
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -34,6 +35,19 @@ _EXPONENT = G0_M_S2 / (R_AIR_J_KG_K * LAPSE_K_M)  # 5.2559: p/p0 = (T/T0)^_EXPON
 ARDUPILOT_BARO_TEMP_CLAMP_C = 35.0
 #: ArduPilot 3.x (the ALFA logs of 2018): the same clamp was 25 degC.
 ARDUPILOT_3_BARO_TEMP_CLAMP_C = 25.0
+
+
+#: An ArduPilot firmware string as its logs and STATUSTEXT name it ("ArduPlane V3.8.2-dev (8178ab40)").
+_ARDUPILOT_VERSION = re.compile(r"(?:\bArdu\w+|\bAPM:\w+) V(\d+)\.(\d+)")
+
+
+def ardupilot_baro_temp_clamp_c(firmware: str) -> float | None:
+    """The baro temperature clamp of the ArduPilot firmware named by ``firmware`` ("ArduPlane V4.5.1"): 35 degC from
+    4.0 on, 25 degC before; ``None`` when the string names no ArduPilot version."""
+    m = _ARDUPILOT_VERSION.search(firmware)
+    if m is None:
+        return None
+    return ARDUPILOT_BARO_TEMP_CLAMP_C if int(m.group(1)) >= 4 else ARDUPILOT_3_BARO_TEMP_CLAMP_C
 
 
 def pressure_altitude_m(pressure_pa: ArrayLike) -> NDArray[np.float64]:

@@ -56,7 +56,8 @@ Clock
 Airspeed
     ArduPilot logs equivalent airspeed (EAS); ``tas_m_s = eas_m_s * sqrt(rho0 / rho)`` with the density at the
     logged static pressure and the air temperature ArduPilot's EKF assumes for the same conversion: the baro's own
-    temperature, at most ``baro_temp_clamp_c`` (a board's baro reads high, self-heated), at the log's lowest
+    temperature, at most the firmware's clamp (a board's baro reads high, self-heated; the version the log names,
+    in a DataFlash ``MSG`` or ``VER`` or a tlog's ``STATUSTEXT``, else ``baro_temp_clamp_c``), at the log's lowest
     altitude, less the ISA lapse rate above it (:mod:`common.atmosphere`, the live link's policy too;
     ``ReadReport.air_temp_c``; 10 K is 1.7 % of TAS; docs/real-data.md).
     Without a baro temperature the ISA atmosphere's; without a logged pressure ``tas_m_s = eas_m_s`` and the report
@@ -93,6 +94,7 @@ from common.angles import wrap_2pi, wrap_pi
 from common.atmosphere import (
     ARDUPILOT_BARO_TEMP_CLAMP_C,
     KELVIN_AT_0_C,
+    ardupilot_baro_temp_clamp_c,
     baro_air_temperature_k,
     eas_to_tas_ratio,
     pressure_altitude_m,
@@ -164,7 +166,9 @@ class ReadReport:
     clock at ``t_us == 0`` (``None`` when only receive times were available).  ``origin_*`` is the GNSS origin of
     the local NED frame (``None`` without a 3-D fix).  ``frames``/``bad_frames``: MAVLink frames read and frames
     that failed to decode (tlog only).  ``air_temp_c``: the air temperature at the log's lowest altitude behind its
-    EAS -> TAS conversion (``None``: the ISA atmosphere's).
+    EAS -> TAS conversion (``None``: the ISA atmosphere's).  ``firmware``: the autopilot firmware the log names
+    (``""``: none); ``baro_temp_clamp_c``: the baro temperature clamp taken (degC), the firmware's when it is an
+    ArduPilot version, else the caller's.
     """
 
     path: str
@@ -179,6 +183,8 @@ class ReadReport:
     frames: int = 0
     bad_frames: int = 0
     air_temp_c: float | None = None
+    firmware: str = ""
+    baro_temp_clamp_c: float = ARDUPILOT_BARO_TEMP_CLAMP_C
 
     @property
     def ok(self) -> bool:
@@ -248,6 +254,7 @@ class _Raw:
     frames: int = 0
     bad_frames: int = 0
     t0_boot_known: bool = True
+    firmware: str = ""          # the autopilot firmware the log names ("ArduPlane V3.8.2-dev (8178ab40)")
 
 
 def _finite_split(records: list[tuple[int, tuple[float, ...]]], what: str,
@@ -260,6 +267,9 @@ def _finite_split(records: list[tuple[int, tuple[float, ...]]], what: str,
 
 def _assemble(path: Path, fmt: str, raw: _Raw, baro_temp_clamp_c: float) -> FlightLog:
     warnings = list(raw.warnings)
+    named = ardupilot_baro_temp_clamp_c(raw.firmware)    # the log's own firmware decides when it names itself
+    if named is not None:
+        baro_temp_clamp_c = named
     imu = _finite_split(raw.imu, "IMU", warnings)
     att = _finite_split(raw.att, "attitude", warnings)
     air = _finite_split(raw.air, "airspeed", warnings)
@@ -339,7 +349,7 @@ def _assemble(path: Path, fmt: str, raw: _Raw, baro_temp_clamp_c: float) -> Flig
         t0_boot_us=int(t0) if raw.t0_boot_known else None,
         origin_lat_deg=origin[0] if origin else None, origin_lon_deg=origin[1] if origin else None,
         origin_alt_m=origin[2] if origin else None, frames=raw.frames, bad_frames=raw.bad_frames,
-        air_temp_c=air_temp_c)
+        air_temp_c=air_temp_c, firmware=raw.firmware, baro_temp_clamp_c=baro_temp_clamp_c)
     return FlightLog(samples=ordered, report=report)
 
 
@@ -354,6 +364,16 @@ _TlogAnchor = tuple[int, tuple[int, int], int, tuple[str, int]]
 _BOOT, _UNIX = "boot", "unix"
 _TLOG_IMU_PREFERENCE = ("HIGHRES_IMU", "SCALED_IMU", "RAW_IMU", "SCALED_IMU2", "SCALED_IMU3")
 _TLOG_TYPES = {*_TLOG_IMU_PREFERENCE, "ATTITUDE", "VFR_HUD", "GPS_RAW_INT", "WIND", "SCALED_PRESSURE"}
+
+
+def _tlog_firmware(msg: Any) -> str:
+    """The ArduPilot firmware a STATUSTEXT names ("ArduPlane V4.5.1 (...)", sent at boot and to a new ground
+    station); ``""`` for any other text."""
+    try:
+        text = str(msg.text)
+    except (AttributeError, TypeError, ValueError):
+        return ""
+    return text if ardupilot_baro_temp_clamp_c(text) is not None else ""
 
 
 def _stamp(msg: Any) -> tuple[str, int] | None:
@@ -436,6 +456,8 @@ def read_tlog(path: Path, baro_temp_clamp_c: float = ARDUPILOT_BARO_TEMP_CLAMP_C
                 stamp = None
             if stamp is not None:
                 anchors.append((raw.frames, src, recv_us, stamp))
+            if not raw.firmware and mtype == "STATUSTEXT":
+                raw.firmware = _tlog_firmware(msg)
             if mtype not in _TLOG_TYPES:
                 continue
             try:
@@ -605,7 +627,7 @@ def _captured_output() -> Iterator[io.StringIO]:
             tmp.seek(0)
             buf.write(tmp.read().decode("utf-8", errors="replace"))
 
-_DF_TYPES = ["IMU", "ATT", "BARO", "GPS", "ARSP", "NKF2", "XKF2", "PARM"]
+_DF_TYPES = ["IMU", "ATT", "BARO", "GPS", "ARSP", "NKF2", "XKF2", "PARM", "MSG", "VER"]
 
 
 def _df_time_us(m: Any) -> int | None:
@@ -654,6 +676,13 @@ def _df_record(m: Any, raw: _Raw, winds: dict[str, list[tuple[int, tuple[float, 
     """Store one message; False when it has no timestamp (and was not stored)."""
     mtype = m.get_type()
     if mtype == "PARM":
+        return True
+    if mtype in ("MSG", "VER"):          # the firmware: MSG's text, or VER's numbers (ArduPilot 4.1 on)
+        if not raw.firmware:
+            text = (str(getattr(m, "Message", "")) if mtype == "MSG"
+                    else f"ArduPilot V{int(getattr(m, 'Major', 0))}.{int(getattr(m, 'Minor', 0))}")
+            if ardupilot_baro_temp_clamp_c(text) is not None and not text.startswith("ArduPilot V0."):
+                raw.firmware = text
         return True
     t = _df_time_us(m)
     if t is None:

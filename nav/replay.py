@@ -136,8 +136,9 @@ class ReplayConfig(Validated):
     ``max_camera_height_m``: the virtual camera produces no frame below the first; a take-off reference that puts
     the flight outside [min, max] is implausible and replaced by the assumption.  ``optical_sigma_px``: one-sigma
     pixel noise per axis added to each synthetic step (0: the EKF's optical noise model for that step).
-    ``baro_temp_clamp_c``: the log's firmware's clamp of the baro temperature taken as air temperature
-    (:mod:`common.atmosphere`; the shared ALFA logs are ArduPilot 3.x: 25 degC).
+    ``baro_temp_clamp_c``: the clamp of the baro temperature taken as air temperature (degC,
+    :mod:`common.atmosphere`) for a log that does not name its firmware (the shared ALFA logs do not; they are
+    ArduPilot 3.x: 25 degC); a log that names an ArduPilot version gets that version's clamp.
     """
 
     wind_settle_s: Annotated[float, In(0.0, 3600.0)] = 20.0
@@ -616,6 +617,8 @@ def run_replay(log_path: str | Path, *, out_dir: str | Path | None = None, confi
         "baro_offset_m": baro_offset_m,
         "gnss_delay_s": rcfg.gnss_delay_s,
         "eas_to_tas_air_temp_c": report.air_temp_c,        # None: the ISA atmosphere's (nav.logreader)
+        "log_firmware": report.firmware or None,            # None: the log names no firmware
+        "baro_temp_clamp_c": report.baro_temp_clamp_c,      # the log's firmware's, else [replay] baro_temp_clamp_c
         "ekf_replay_profile": REPLAY_PROFILE,
         "log_warnings": list(report.warnings),
     }

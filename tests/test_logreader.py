@@ -13,7 +13,12 @@ from pymavlink import mavutil
 from scipy.spatial.transform import Rotation
 
 from common.angles import angle_diff
-from common.atmosphere import ARDUPILOT_3_BARO_TEMP_CLAMP_C, eas_to_tas_ratio, pressure_altitude_m
+from common.atmosphere import (
+    ARDUPILOT_3_BARO_TEMP_CLAMP_C,
+    ardupilot_baro_temp_clamp_c,
+    eas_to_tas_ratio,
+    pressure_altitude_m,
+)
 from common.samples import AttitudeSample, ImuSample
 from nav.logreader import (
     AirspeedSample,
@@ -211,6 +216,8 @@ def test_truncated_dataflash_parses_imu_att_gps_and_ekf_wind():
     assert rep.log_format == "dataflash"
     assert any("truncated" in w for w in rep.warnings)
     assert rep.sources["AutopilotWind"] == "NKF2.VWN/VWE" and "AirspeedSample" not in rep.counts  # no ARSP
+    # its MSG names ArduPlane 3.8: 3.x's baro temperature clamp, not the caller's default (4.x)
+    assert rep.firmware.startswith("ArduPlane V3.8.2") and rep.baro_temp_clamp_c == ARDUPILOT_3_BARO_TEMP_CLAMP_C
     from pymavlink import DFReader
 
     ref = DFReader.DFReader_binary(str(path), zero_time_base=False)
@@ -245,6 +252,36 @@ def test_truncated_dataflash_parses_imu_att_gps_and_ekf_wind():
     m = first["NKF2"]
     np.testing.assert_allclose(wind.wind_ned_m_s, [m.VWN, m.VWE], atol=1e-12)
     assert wind.t_us + rep.t0_boot_us == m.TimeUS
+
+
+@pytest.mark.parametrize(("text", "clamp_c"), [
+    ("ArduPlane V3.8.2-dev (8178ab40)", 25.0), ("APM:Plane V3.4.0", 25.0), ("ArduPlane V4.5.1 (deadbeef)", 35.0),
+    ("ArduCopter V4.0.0", 35.0), ("PX4 v1.14.0", None), ("Initialising ArduPilot", None), ("", None)])
+def test_firmware_names_give_their_baro_clamp(text, clamp_c):
+    assert ardupilot_baro_temp_clamp_c(text) == clamp_c
+
+
+def test_a_tlog_naming_its_firmware_takes_that_firmwares_baro_clamp(tmp_path, long_log):
+    """The ALFA log names no firmware: the caller's clamp (3.x's 25 degC).  The same log with ArduPlane 4.5's boot
+    banner (a STATUSTEXT) put in front takes 4.x's 35 degC whatever the caller passes: its baro reads about 55 degC,
+    so the air is taken at 35 degC, and every TAS rises by the square root of the temperature ratio."""
+    assert long_log.report.firmware == "" and long_log.report.baro_temp_clamp_c == ARDUPILOT_3_BARO_TEMP_CLAMP_C
+    data = shared_data("flightlogs", LONG).read_bytes()
+    from pymavlink.dialects.v10 import ardupilotmega as mav1
+
+    enc = mav1.MAVLink(None, srcSystem=1, srcComponent=1)
+    banner = enc.statustext_encode(6, b"ArduPlane V4.5.1 (deadbeef)").pack(enc)
+    named = tmp_path / "named.tlog"
+    named.write_bytes(data[:8] + banner + data)            # the first frame's time header, then the banner
+    flog = read_log(named, ARDUPILOT_3_BARO_TEMP_CLAMP_C)
+    rep = flog.report
+    assert rep.firmware.startswith("ArduPlane V4.5.1") and rep.baro_temp_clamp_c == 35.0
+    assert rep.air_temp_c == pytest.approx(35.0) and long_log.report.air_temp_c == pytest.approx(25.0)
+    tas_35 = np.array([a.tas_m_s for a in flog.of_type(AirspeedSample)])
+    tas_25 = np.array([a.tas_m_s for a in long_log.of_type(AirspeedSample)])
+    # the same pressures, each temperature 10 K higher: sqrt(T + 10 / T) at 290-310 K
+    ratio = tas_35 / tas_25
+    assert np.all((ratio > math.sqrt(310.0 / 300.0) - 1e-3) & (ratio < math.sqrt(300.0 / 290.0) + 1e-3))
 
 
 # ---------------------------------------------------------------------------------------------------------------
