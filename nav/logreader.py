@@ -420,6 +420,7 @@ def read_tlog(path: Path, baro_temp_clamp_c: float = ARDUPILOT_BARO_TEMP_CLAMP_C
     recs: list[_TlogRecord] = []
     anchors: list[_TlogAnchor] = []
     vehicle: tuple[int, int, int] | None = None  # (sysid, compid, autopilot)
+    banners: dict[tuple[int, int], str] = {}      # the firmware each sender names in a STATUSTEXT
     last_end = skipped = 0
     try:
         conn = mavutil.mavlogfile(str(path), robust_parsing=True)
@@ -456,8 +457,10 @@ def read_tlog(path: Path, baro_temp_clamp_c: float = ARDUPILOT_BARO_TEMP_CLAMP_C
                 stamp = None
             if stamp is not None:
                 anchors.append((raw.frames, src, recv_us, stamp))
-            if not raw.firmware and mtype == "STATUSTEXT":
-                raw.firmware = _tlog_firmware(msg)
+            if mtype == "STATUSTEXT" and src not in banners:
+                text = _tlog_firmware(msg)
+                if text:
+                    banners[src] = text
             if mtype not in _TLOG_TYPES:
                 continue
             try:
@@ -480,9 +483,11 @@ def read_tlog(path: Path, baro_temp_clamp_c: float = ARDUPILOT_BARO_TEMP_CLAMP_C
     if vehicle is None:
         if recs:
             raw.warnings.append("no vehicle HEARTBEAT: messages of every system are used")
+        raw.firmware = next(iter(banners.values()), "")
     else:
         recs = [r for r in recs if r[1] == vehicle[:2]]
         anchors = [a for a in anchors if a[1] == vehicle[:2]]
+        raw.firmware = banners.get(vehicle[:2], "")
     present = {r[0] for r in recs}
     imu_type = None
     for cand in _TLOG_IMU_PREFERENCE:
@@ -679,8 +684,10 @@ def _df_record(m: Any, raw: _Raw, winds: dict[str, list[tuple[int, tuple[float, 
         return True
     if mtype in ("MSG", "VER"):          # the firmware: MSG's text, or VER's numbers (ArduPilot 4.1 on)
         if not raw.firmware:
-            text = (str(getattr(m, "Message", "")) if mtype == "MSG"
-                    else f"ArduPilot V{int(getattr(m, 'Major', 0))}.{int(getattr(m, 'Minor', 0))}")
+            try:
+                text = (str(m.Message) if mtype == "MSG" else f"ArduPilot V{int(m.Major)}.{int(m.Minor)}")
+            except (AttributeError, TypeError, ValueError, OverflowError):
+                text = ""                # a damaged record names nothing
             if ardupilot_baro_temp_clamp_c(text) is not None and not text.startswith("ArduPilot V0."):
                 raw.firmware = text
         return True
