@@ -61,7 +61,14 @@ class TrueAirspeed(ModelBase):
         """Measurement variance (m^2/s^2): the pitot's white noise plus the share of the turbulence (variance in use
         ``turb_var_m2_s2``, per axis) that the wind state does not follow, time-correlated and so weighted down:
         ``airspeed.sigma_m_s^2 + airspeed.turb_noise_factor^2 turb_var``."""
-        return cfg.airspeed.sigma_m_s**2 + cfg.airspeed.turb_noise_factor**2 * turb_var_m2_s2
+        white, k_turb = TrueAirspeed.variance_terms(cfg)
+        return white + k_turb * turb_var_m2_s2
+
+    @staticmethod
+    def variance_terms(cfg: EkfConfig) -> tuple[float, float]:
+        """:meth:`variance`'s two configuration numbers (m^2/s^2 and its factor of the turbulence variance), which
+        the source reads once."""
+        return cfg.airspeed.sigma_m_s**2, cfg.airspeed.turb_noise_factor**2
 
     @staticmethod
     def wind_from_airspeed(x: Vec, tas_m_s: float, yaw_ahrs_rad: float) -> tuple[Vec, Mat, Vec, Vec]:
@@ -108,7 +115,7 @@ class AirspeedAid(AidSource):
         self._min_m_s, self._gate = a.min_m_s, self.cfg.gates.airspeed_nis
         self._calm_turb_var_max = a.scale_calm_turb_sigma_max_m_s**2
         self._fractions = (a.scale_calm_fraction, a.scale_update_fraction)
-        self._var_terms = (a.sigma_m_s**2, a.turb_noise_factor**2)               # TrueAirspeed.variance
+        self._var_terms = TrueAirspeed.variance_terms(self.cfg)
 
     def push(self, t_us: int, payload: Any) -> None:
         self.ctx.timeline.push(t_us, self.name, float(payload))

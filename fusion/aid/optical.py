@@ -54,7 +54,7 @@ class OpticalDisplacement(ModelBase):
     dN + sin(psi) dE) / h_base``.  ``focal_px`` (``f``): the virtual nadir camera's focal length (px); ``base_yaw_rad``:
     the AHRS heading the cycle's frame was built with (rad), so an AHRS heading error shows only in the label
     (``- yaw_bias``); ``opt_rot``: what the optical estimator's own attitude adds.  ``var_px2``: the noise variance of
-    each axis (uncorrelated, :meth:`for_step_with`; NaN when the model is built for its geometry only).
+    each axis (uncorrelated, :meth:`for_step`; NaN when the model is built for its geometry only).
     """
 
     focal_px: float
@@ -62,12 +62,8 @@ class OpticalDisplacement(ModelBase):
     var_px2: float = math.nan
 
     @classmethod
-    def for_step(cls, step: GsoeStep, cfg: EkfConfig) -> OpticalDisplacement:
-        return cls.for_step_with(step, noise_terms(cfg))
-
-    @classmethod
-    def for_step_with(cls, step: GsoeStep, terms: NoiseTerms) -> OpticalDisplacement:
-        """:meth:`for_step` with the configuration's :func:`noise_terms` read once (the per-step path).  Each axis's
+    def for_step(cls, step: GsoeStep, terms: NoiseTerms) -> OpticalDisplacement:
+        """The model of one step, with the configuration's :func:`noise_terms` (read once by the source): each axis's
         noise variance is the sum of the squares of :meth:`noise_sigma_px` (matcher and attitude, uncorrelated)."""
         m, a = _sigmas_px(step, terms)
         return cls(float(step.focal_px), float(step.base_yaw_rad), m * m + a * a)
@@ -222,7 +218,7 @@ class OpticalAid(AidSource):
         if not (step.valid and step.quality.valid):
             row.set(t, rejected=True, reason=REASON_INVALID_MATCH)
             return True
-        model = OpticalDisplacement.for_step_with(step, self._noise)
+        model = OpticalDisplacement.for_step(step, self._noise)
         if model.height_base_m(self.core.x) < self._min_height_m:
             row.set(t, rejected=True, reason=REASON_LOW_HEIGHT)
             return True
