@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from common.hostref import describe, host_reference
 from common.samples import AirspeedSample, AttitudeSample, BaroSample, GnssSample, ImuSample
 from gsoe.camera import CameraModel
 from gsoe.config import GsoeConfig
@@ -249,7 +250,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"gsoe bench: rendering {args.frames} frames over '{args.texture}' ...", flush=True)
     frames, imu, flight = _frames(cfg, camera, args.texture, args.frames, cfg.cycle.rate_hz)
     results: dict[str, Any] = {"frames": args.frames, "opencv": cv2.__version__, "ipp_available": cv2.ipp.useIPP(),
-                               "match_method": cfg.match.method}
+                               "match_method": cfg.match.method, "host": host_reference()}
     for ipp in (True, False):
         cv2.ipp.setUseIPP(ipp)
         results["ipp_on" if ipp else "ipp_off"] = _time_optical(cfg, camera, frames, imu)
@@ -269,6 +270,11 @@ def run(args: argparse.Namespace) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         results["companion_loop"] = companion_loop_cpu(cfg, raw, camera, samples, [(t, im) for t, im, _ in frames],
                                                        tmp)
+    results["host_after"] = host_reference()     # a shared host's speed drifts: the reference at both ends
+    print(describe(results["host"]))
+    print(f"  after the bench: Python loop {results['host_after']['python_loop_ns']:.0f} ns/iteration, NumPy "
+          f"{results['host_after']['numpy_matmul_24_us']:.2f} us, matchTemplate "
+          f"{results['host_after']['match_template_us']:.0f} us")
     print(f"{'':36s}{'median ms/frame':>16s}{'p95':>8s}{'vs naive':>10s}")
     for key in ("ipp_on", "ipp_off"):
         r = results[key]

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from cli.argtypes import int_at_least, positive_float
+from common.hostref import describe
 
 log = logging.getLogger(__name__)
 
@@ -67,6 +68,9 @@ def _print_goals(summary: dict[str, Any]) -> None:
     print(f"  throughput: {tp['sim_s_per_wall_s']:.3g} sim s per wall s, projected 100 x 600 s campaign "
           f"{tp['projected_wall_s_100x600']:.0f} s; max worker peak RSS {tp['peak_rss_mb_max']:.0f} MB"
           if tp["sim_s_per_wall_s"] is not None and tp["peak_rss_mb_max"] is not None else "  throughput: n/a")
+    hosts = [s["host"] for s in tp.get("sessions", []) if isinstance(s.get("host"), dict)]
+    if hosts:
+        print(f"  {describe(hosts[-1])}")
 
 
 def _refly(args: argparse.Namespace) -> int:

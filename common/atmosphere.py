@@ -47,7 +47,12 @@ def ardupilot_baro_temp_clamp_c(firmware: str) -> float | None:
     m = _ARDUPILOT_VERSION.search(firmware)
     if m is None:
         return None
-    return ARDUPILOT_BARO_TEMP_CLAMP_C if int(m.group(1)) >= 4 else ARDUPILOT_3_BARO_TEMP_CLAMP_C
+    return ardupilot_major_baro_temp_clamp_c(int(m.group(1)))
+
+
+def ardupilot_major_baro_temp_clamp_c(major: int) -> float:
+    """The baro temperature clamp of ArduPilot major version ``major``: 35 degC from 4 on, 25 degC before."""
+    return ARDUPILOT_BARO_TEMP_CLAMP_C if major >= 4 else ARDUPILOT_3_BARO_TEMP_CLAMP_C
 
 
 def pressure_altitude_m(pressure_pa: ArrayLike) -> NDArray[np.float64]:
@@ -80,19 +85,27 @@ def baro_air_temperature_k(baro_temp_c: float, clamp_c: float) -> float:
 class GroundAir:
     """The ground reference of a live stream: the (pressure, clamped baro temperature) at the lowest altitude seen.
 
-    ``update`` takes each baro report; ``ratio`` gives ``sqrt(rho0 / rho)`` at a pressure (nan before a report).
+    ``update`` takes each baro report; ``ratio`` gives ``sqrt(rho0 / rho)`` at a pressure (nan before a report);
+    ``set_clamp`` changes the clamp once the autopilot's firmware is known, the reference taken again.
     """
 
     baro_temp_clamp_c: float = ARDUPILOT_BARO_TEMP_CLAMP_C
     pressure_pa: float = math.nan
     temperature_k: float = math.nan
+    baro_temp_c: float = math.nan      #: the reference's own baro temperature, before the clamp
 
     def update(self, pressure_pa: float, baro_temp_c: float) -> None:
         if not (math.isfinite(pressure_pa) and pressure_pa > 0.0 and math.isfinite(baro_temp_c)):
             return
         if not math.isfinite(self.pressure_pa) or pressure_pa >= self.pressure_pa:
             self.pressure_pa = pressure_pa
+            self.baro_temp_c = baro_temp_c
             self.temperature_k = baro_air_temperature_k(baro_temp_c, self.baro_temp_clamp_c)
+
+    def set_clamp(self, clamp_c: float) -> None:
+        self.baro_temp_clamp_c = clamp_c
+        if math.isfinite(self.baro_temp_c):
+            self.temperature_k = baro_air_temperature_k(self.baro_temp_c, clamp_c)
 
     def ratio(self, pressure_pa: float) -> float:
         if not math.isfinite(self.pressure_pa):

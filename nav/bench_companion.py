@@ -40,6 +40,7 @@ from typing import Any
 
 import numpy as np
 
+from common.hostref import describe, host_reference
 from common.procs import STOP_GRACE_S, SilFlight, free_port, sil_results, stop_process
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -132,6 +133,7 @@ def perf(seconds: float, frame_hz: float, outage_after_s: float, config: str | N
     from nav.companion import Companion
     from pipeline.config import load_gsoe_config
 
+    host = host_reference()          # before the vehicle starts: the quiet host
     cores = sorted(os.sched_getaffinity(0))
     veh_core, comp_core = (cores[0], cores[1]) if len(cores) > 1 else (cores[0], cores[0])
     udp, tcp = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_STREAM)
@@ -168,7 +170,7 @@ def perf(seconds: float, frame_hz: float, outage_after_s: float, config: str | N
             "outputs_suppressed": status["outputs_suppressed"],
             "latency_sent_ms": _stats(send_lat), "latency_handed_ms": _stats(hand_ms),
             "cpu_one_core_frac": cpu, "peak_rss_mb": r1.ru_maxrss / 1024.0, "companion_core": comp_core,
-            "vehicle_core": veh_core}
+            "vehicle_core": veh_core, "host": host}
 
 
 def _stats(a: np.ndarray) -> dict[str, float]:
@@ -207,6 +209,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"CPU: {100 * r['cpu_one_core_frac']:.1f} % of one core (core {r['companion_core']}, all companion "
               f"threads; vehicle on core {r['vehicle_core']})")
         print(f"peak RSS: {r['peak_rss_mb']:.1f} MB")
+        print(describe(r["host"]))
         return 0
     out = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="gsoe-guidance-"))
     res = guidance_figure(out, args.start_m, args.outage_range_m, args.seed)

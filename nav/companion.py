@@ -737,6 +737,7 @@ class Companion:
         return {"connected": self.link.stats.connected, "gnss": self.monitor.state.name,
                 "camera_open": self.camera_thread.opened, **dataclasses.asdict(self.counters),
                 "telemetry_rejected": dict(self.link.guard.rejected), "sent": dict(self.link.stats.sent),
+                "autopilot_firmware": self.link.guard.firmware, "baro_temp_clamp_c": self.link.guard.baro_temp_clamp_c,
                 "send_errors": dict(self.link.stats.send_errors),
                 "send_latency_ms": {k: {"n": len(v), "median": float(np.median(v)) / 1000.0}
                                     for k, v in self.link.stats.send_latency_us.items() if len(v)}}

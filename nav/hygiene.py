@@ -27,6 +27,7 @@ from typing import Any
 
 log = logging.getLogger(__name__)
 
+MAV_AUTOPILOT_ARDUPILOTMEGA = 3
 MAV_AUTOPILOT_INVALID = 8
 MAV_COMP_ID_AUTOPILOT1 = 1
 #: HEARTBEAT ``type`` values of components that are not an autopilot even when they name one

@@ -104,6 +104,7 @@ from common.angles import wrap_360
 from common.atmosphere import (
     ARDUPILOT_BARO_TEMP_CLAMP_C,
     GroundAir,
+    ardupilot_major_baro_temp_clamp_c,
     eas_to_tas_ratio,
     isa_pressure_pa,
     pressure_altitude_m,
@@ -112,7 +113,7 @@ from common.config import In, Validated, require
 from common.samples import AirspeedSample, AttitudeSample, BaroSample, GnssSample, ImuSample
 from gsoe.rotation import R_nb_from_euler
 from nav.gnss_monitor import GPS_FIX_TYPE_3D
-from nav.hygiene import AutopilotSenders
+from nav.hygiene import MAV_AUTOPILOT_ARDUPILOTMEGA, AutopilotSenders
 
 log = logging.getLogger(__name__)
 
@@ -175,7 +176,9 @@ class LinkConfig(Validated):
     long; ``raw_imu_accel_scale_m_s2``/``raw_imu_gyro_scale_rad_s``: the RAW_IMU units (ArduPilot: mG and mrad/s);
     ``air_temperature``: the temperature of the air density that makes VFR_HUD's equivalent airspeed true, the
     baro's as ArduPilot takes it (:mod:`common.atmosphere`: at the lowest altitude seen, at most
-    ``baro_temp_clamp_c``, the ISA lapse above) or the ISA's at the pressure altitude; ``max_clock_ahead_s``: a
+    ``baro_temp_clamp_c``, the ISA lapse above) or the ISA's at the pressure altitude; an ArduPilot that tells its
+    version (AUTOPILOT_VERSION) sets that clamp itself (:meth:`TelemetryGuard.firmware_version`), so
+    ``baro_temp_clamp_c`` is for autopilots that do not; ``max_clock_ahead_s``: a
     stamp mapping this far beyond the newest one is refused (a message on another time base).
 
     Velocity output (module docstring): ``velocity_message``; ``ap_vis_verr_min_m_s``/``ap_vis_verr_max_m_s``
@@ -614,6 +617,10 @@ class TelemetryGuard:
         self._pressure_pa = math.nan
         self._ground_air = GroundAir(self.cfg.baro_temp_clamp_c)
         self._back: dict[str, list[int]] = {}
+        #: the autopilot's flight software, "" until known: ``"ArduPilot 4.5.7"`` (:meth:`firmware_version`)
+        self.firmware = ""
+        self._autopilot_type: int | None = None          # MAV_AUTOPILOT of the autopilot's own HEARTBEAT
+        self._version: tuple[int, int, int] | None = None
 
     def _reject(self, kind: str, reason: str) -> None:
         key = f"{kind}:{reason}"
@@ -687,6 +694,10 @@ class TelemetryGuard:
         if sender is not None:
             if name == "HEARTBEAT":
                 self.senders.heartbeat(*sender, int(f.get("autopilot", 8)), int(f.get("type", 0)))
+                if self._autopilot_type is None and self.senders.known and \
+                        tuple(sender) == (self.senders.system_id, self.senders.component_id):
+                    self._autopilot_type = int(f.get("autopilot", 8))
+                    self._apply_firmware()
                 return None
             why = self.senders.check(name, *sender)
             if why:
@@ -776,6 +787,36 @@ class TelemetryGuard:
             self._pressure_pa = 100.0 * p_hpa
             if upd & (1 << 12) and math.isfinite(t_c) and -80.0 < t_c < 80.0:
                 self._ground_air.update(self._pressure_pa, t_c)
+
+    def firmware_version(self, major: int, minor: int, patch: int) -> None:
+        """The autopilot's flight software version (its AUTOPILOT_VERSION, read through MAVSDK's Info plugin).  An
+        ArduPilot's decides the baro temperature clamp of the airspeed's air density (35 degC from 4.0 on, 25 degC
+        before; :mod:`common.atmosphere`); ``baro_temp_clamp_c`` applies until then and to other autopilots."""
+        if not all(isinstance(v, int) and 0 <= v < 256 for v in (major, minor, patch)):
+            log.warning("autopilot version %r.%r.%r not understood: baro temperature clamp stays %.0f degC",
+                        major, minor, patch, self._ground_air.baro_temp_clamp_c)
+            return
+        self._version = (major, minor, patch)
+        self._apply_firmware()
+
+    def _apply_firmware(self) -> None:
+        if self._version is None or self._autopilot_type is None:
+            return
+        major, minor, patch = self._version
+        if self._autopilot_type != MAV_AUTOPILOT_ARDUPILOTMEGA:
+            self.firmware = f"autopilot type {self._autopilot_type} {major}.{minor}.{patch}"
+            return
+        self.firmware = f"ArduPilot {major}.{minor}.{patch}"
+        clamp_c = ardupilot_major_baro_temp_clamp_c(major)
+        if clamp_c != self._ground_air.baro_temp_clamp_c:
+            log.info("%s: baro temperature clamp %.0f degC (was %.0f)", self.firmware, clamp_c,
+                     self._ground_air.baro_temp_clamp_c)
+            self._ground_air.set_clamp(clamp_c)
+
+    @property
+    def baro_temp_clamp_c(self) -> float:
+        """The baro temperature clamp in use (degC)."""
+        return self._ground_air.baro_temp_clamp_c
 
     def eas_to_tas(self) -> float:
         """``sqrt(rho0 / rho)`` at the last baro pressure (``air_temperature``; :mod:`common.atmosphere`), nan
@@ -1003,6 +1044,7 @@ class CompanionLink:
         self._tasks = [asyncio.ensure_future(self._pump(self._direct.subscribe_message(n), self._converter(n)))
                        for n in names]
         self._tasks.append(asyncio.ensure_future(self._watch(system)))
+        self._tasks.append(asyncio.ensure_future(self._read_version(system)))
         self.stats.connected = True
         log.info("connected to autopilot (system %d) on %s", self.target_system, self.url)
         if self.cfg.request_rates:
@@ -1085,6 +1127,25 @@ class CompanionLink:
                 self.samples.put_nowait(s)
             except queue.Full:
                 self.stats.dropped_samples += 1
+
+    async def _read_version(self, system: Any, tries: int = 10, wait_s: float = 1.0) -> None:
+        """The autopilot's AUTOPILOT_VERSION, which MAVSDK requests on discovery, into the guard; retried while
+        MAVSDK has none yet."""
+        from mavsdk.asyncio.plugins.info import InfoAsync
+
+        info = InfoAsync(system)
+        for _ in range(tries):
+            try:
+                v = await info.get_version()
+            except Exception as e:  # noqa: BLE001 - InfoError until the message came; any failure leaves the default
+                log.debug("autopilot version not available yet: %s", e)
+                await asyncio.sleep(wait_s)
+                continue
+            self.guard.firmware_version(int(v.flight_sw_major), int(v.flight_sw_minor), int(v.flight_sw_patch))
+            log.info("autopilot firmware: %s", self.guard.firmware or "not known")
+            return
+        log.warning("the autopilot sent no AUTOPILOT_VERSION: baro temperature clamp %.0f degC (baro_temp_clamp_c)",
+                    self.guard.baro_temp_clamp_c)
 
     async def _watch(self, system: Any) -> None:
         async for connected in system.is_connected_state():

@@ -100,6 +100,7 @@ from common.atmosphere import (
     pressure_altitude_m,
 )
 from common.samples import AirspeedSample, AttitudeSample, BaroSample, GnssSample, ImuSample
+from nav.hygiene import MAV_AUTOPILOT_ARDUPILOTMEGA, MAV_AUTOPILOT_INVALID
 
 log = logging.getLogger(__name__)
 
@@ -124,8 +125,6 @@ GPS_FIX_TYPE_3D = 3  #: MAVLink GPS_FIX_TYPE_3D_FIX; DataFlash GPS.Status and UL
 _MAV_UNKNOWN_U16 = 65535  # GPS_RAW_INT vel/cog: unknown
 _MAV_UNKNOWN_U8 = 255  # GPS_RAW_INT satellites_visible: unknown
 _MAV_TYPE_GCS = 6
-_MAV_AUTOPILOT_ARDUPILOTMEGA = 3
-_MAV_AUTOPILOT_INVALID = 8
 
 SUFFIXES = {".tlog": "tlog", ".bin": "dataflash", ".ulg": "ulog"}
 
@@ -446,7 +445,7 @@ def read_tlog(path: Path, baro_temp_clamp_c: float = ARDUPILOT_BARO_TEMP_CLAMP_C
                 raw.bad_frames += 1
                 continue
             if mtype == "HEARTBEAT":
-                if vehicle is None and msg.type != _MAV_TYPE_GCS and msg.autopilot != _MAV_AUTOPILOT_INVALID:
+                if vehicle is None and msg.type != _MAV_TYPE_GCS and msg.autopilot != MAV_AUTOPILOT_INVALID:
                     vehicle = (msg.get_srcSystem(), msg.get_srcComponent(), msg.autopilot)
                 continue
             src = (msg.get_srcSystem(), msg.get_srcComponent())
@@ -492,7 +491,7 @@ def read_tlog(path: Path, baro_temp_clamp_c: float = ARDUPILOT_BARO_TEMP_CLAMP_C
     imu_type = None
     for cand in _TLOG_IMU_PREFERENCE:
         if cand in present:
-            if cand == "RAW_IMU" and (vehicle is None or vehicle[2] != _MAV_AUTOPILOT_ARDUPILOTMEGA):
+            if cand == "RAW_IMU" and (vehicle is None or vehicle[2] != MAV_AUTOPILOT_ARDUPILOTMEGA):
                 raw.warnings.append("RAW_IMU ignored: its units are only known for ArduPilot (milli-g, milli-rad/s)")
                 continue
             imu_type = cand

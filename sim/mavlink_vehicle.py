@@ -543,14 +543,20 @@ class BellyCamera:
     """Renders the belly camera's frames (only the nadir region the optical estimator samples)."""
 
     def __init__(self, texture: str, seed: int, noise_std: float, exposure_s: float, rng: np.random.Generator,
-                 config_path: str | None = None) -> None:
+                 config_path: str | None = None, mount_yaw_error_deg: float = 0.0) -> None:
+        """``mount_yaw_error_deg``: the physical camera is turned this much further (clockwise, about the body z axis)
+        than the configuration's ``mount_rpy_deg`` says: the mount error a calibration flight finds."""
+        import dataclasses
+
         from gsoe.camera import CameraModel
         from pipeline.config import load_gsoe_config
         from sim.render import CameraRenderer
         from sim.textures import GroundWorld
 
         gsoe_cfg, _ = load_gsoe_config(config_path)
-        self.camera = CameraModel.from_config(gsoe_cfg.camera)
+        r, p, y = gsoe_cfg.camera.mount_rpy_deg
+        self.camera = CameraModel.from_config(dataclasses.replace(gsoe_cfg.camera,
+                                                                  mount_rpy_deg=(r, p, y + mount_yaw_error_deg)))
         self.renderer = CameraRenderer(self.camera, GroundWorld.from_name(texture, seed=seed))
         s = gsoe_cfg.stab
         focal = s.focal_px if s.focal_px > 0 else gsoe_cfg.camera.fx_px

@@ -78,6 +78,7 @@ from scipy import stats as sps
 
 from common.config import ConfigError, In, Validated, build, in_range, require, to_dict
 from common.configfile import CONFIG_DIR, read_toml
+from common.hostref import host_reference
 from common.metrics import nees_bounds
 from gsoe.config import CameraConfig
 from pipeline.config import load_gsoe_config
@@ -958,6 +959,7 @@ def run_campaign(spec: MonteCarloSpec, out_dir: str | Path, *, indices: Iterable
     flown: list[int] = []
     failed: list[int] = []
     sim_s_flown = [0.0]
+    host = host_reference()     # the session's throughput is this host's (common.hostref)
     t0 = time.perf_counter()
     started = datetime.now(UTC).isoformat(timespec="seconds")
     bar = _progress_bar(len(todo), progress)
@@ -986,7 +988,7 @@ def run_campaign(spec: MonteCarloSpec, out_dir: str | Path, *, indices: Iterable
         wall = time.perf_counter() - t0
         camp["sessions"].append({"started_utc": started, "wall_s": wall, "flown": len(flown),
                                  "failed": len(failed), "sim_s": sim_s_flown[0], "backend": backend,
-                                 "workers": n_workers, "code": code_fingerprint()})
+                                 "workers": n_workers, "code": code_fingerprint(), "host": host})
         write_json(out / CAMPAIGN_FILE, camp)
     write_summary(out, spec)
     return CampaignResult(out, sorted(flown), skipped, sorted(failed), wall, backend, n_workers)

@@ -188,7 +188,7 @@ class SitlCamera:
                  texture: str = DEFAULT_TEXTURE, seed: int = 0, config_path: str | None = None,
                  ground_amsl_m: float | None = None, max_lag_s: float = 0.25, truth_log_dir: str | None = None,
                  noise_std: float = CAMERA_NOISE_STD, oracle_velocity_hz: float = 0.0,
-                 oracle_confidence: int = 100) -> None:
+                 oracle_confidence: int = 100, mount_yaw_error_deg: float = 0.0) -> None:
         self.url = url
         self.server = server
         self.frame_period_us = round(1e6 / frame_hz)
@@ -196,7 +196,7 @@ class SitlCamera:
         self.ground_amsl_m = ground_amsl_m
         self.max_lag_s = max_lag_s
         rng = np.random.default_rng(seed)
-        self.camera = BellyCamera(texture, seed, noise_std, CAMERA_EXPOSURE_S, rng, config_path)
+        self.camera = BellyCamera(texture, seed, noise_std, CAMERA_EXPOSURE_S, rng, config_path, mount_yaw_error_deg)
         self.stamper = TruthStamper()
         self.frame: LocalFrame | None = None
         self.truth_log: Any = None
@@ -334,6 +334,8 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--oracle-velocity-hz", type=float, default=0.0,
                     help="experiment: send the truth's body-frame velocity (VISION_POSITION_DELTA) at this rate")
     ap.add_argument("--oracle-confidence", type=int, default=100, help="its confidence (0-100)")
+    ap.add_argument("--mount-yaw-error-deg", type=float, default=0.0,
+                    help="render with the camera turned this much further in yaw than its file says (a mount error)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -347,7 +349,8 @@ def run(args: argparse.Namespace) -> int:
     bridge = SitlCamera(args.connect, server, frame_hz=args.frame_hz, truth_hz=args.truth_hz, texture=args.texture,
                         seed=args.seed, config_path=args.config, ground_amsl_m=args.ground_amsl_m,
                         max_lag_s=args.max_lag_s, truth_log_dir=args.truth_log,
-                        oracle_velocity_hz=args.oracle_velocity_hz, oracle_confidence=args.oracle_confidence)
+                        oracle_velocity_hz=args.oracle_velocity_hz, oracle_confidence=args.oracle_confidence,
+                        mount_yaw_error_deg=args.mount_yaw_error_deg)
 
     def _term(signum: int, _frame: object) -> None:
         bridge.request_stop()

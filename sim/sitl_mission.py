@@ -131,6 +131,9 @@ class MissionSpec:
     source_switch: str = "command"  # "command": MAV_CMD_SET_EKF_SOURCE_SET; "rc": RC7 (RC7_OPTION 90) to mid
     ap_params: tuple[tuple[str, float], ...] = ()  # more ArduPlane parameters (experiments; override the above)
     route: str = "racetrack"  # "racetrack": laps of leg_m x width_m; "transit": a straight line away from home
+    mount_yaw_error_deg: float = 0.0  # the bridge's camera turned this much further than the companion's file says
+    mount_calibrated: bool = True  # false: the companion's optical rotation is free to learn the mount (a calibration
+    #                                flight, gsoe calibrate-mount); true: held as after a calibration (SITL_COMPANION)
     timeout_factor: float = 3.0  # the flight is given up after this many times its nominal wall-clock length
 
     @property
@@ -170,7 +173,8 @@ IN_FLIGHT_PARAMETERS = ("SIM_GPS1_ENABLE",)
 
 def companion_settings(spec: MissionSpec) -> list[str]:
     """The companion's ``--set`` overrides for the flight."""
-    out = [f"{k}={v}" for k, v in {**SITL_AIRFRAME, **SITL_COMPANION}.items()]
+    held = SITL_COMPANION if spec.mount_calibrated else {k: v for k, v in SITL_COMPANION.items() if "opt_rot" not in k}
+    out = [f"{k}={v}" for k, v in {**SITL_AIRFRAME, **held}.items()]
     out += [f'companion.link.velocity_message="{spec.velocity_message}"',
             f"companion.link.vision_speed={'true' if spec.extnav and spec.oracle_confidence < 0 else 'false'}",
             f"companion.link.ap_vis_verr_min_m_s={spec.vis_verr_min_m_s}",
@@ -441,6 +445,8 @@ def fly_mission(spec: MissionSpec, out_dir: Path, seed: int = 0) -> dict[str, An
                   f"{spec.frame_hz:g}", "--port-file", str(port_file), "--seed", str(seed)]
     if spec.oracle_confidence >= 0 and spec.extnav:
         bridge_cmd += ["--oracle-velocity-hz", "10", "--oracle-confidence", str(spec.oracle_confidence)]
+    if spec.mount_yaw_error_deg:
+        bridge_cmd += ["--mount-yaw-error-deg", f"{spec.mount_yaw_error_deg:g}"]
     wall_limit_s = spec.timeout_factor * (spec.flight_s / spec.speedup + 120.0)
     t_start = time.monotonic()
     runlog = RunLog(out_dir / "harness")

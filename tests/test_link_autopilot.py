@@ -162,6 +162,48 @@ def test_a_warm_baro_is_clamped_and_the_air_cools_with_height_as_ardupilot_takes
     assert s is not None and s.tas_m_s == pytest.approx(20.0 * math.sqrt(1.225 / rho_up), rel=1e-4)
 
 
+def test_the_autopilots_version_sets_the_clamp_an_ardupilot_3_took_25_degc():
+    """ArduPilot 3.x clamped the baro's temperature at 25 degC, 4.x at 35 degC: once the autopilot's HEARTBEAT names
+    ArduPilot and its AUTOPILOT_VERSION says 3.9.11, a 55 degC baro stands for 25 degC air, taken again for the
+    reference already held (in either order of the two messages); a PX4 (autopilot type 12) keeps the configured
+    clamp; a version that is not three small integers changes nothing."""
+    vfr = {"airspeed": 20.0, "groundspeed": 0, "heading": 0, "throttle": 0, "alt": 0, "climb": 0}
+    hb_ardupilot = {"type": 1, "autopilot": 3, "base_mode": 0, "custom_mode": 0, "system_status": 4}
+
+    def tas(g: TelemetryGuard, clock: Clock) -> float:
+        clock.t_us += 10_000
+        s = g.message("VFR_HUD", vfr, (1, 1))
+        assert s is not None
+        return s.tas_m_s
+
+    def tas_at(temp_c: float) -> float:
+        return 20.0 * math.sqrt(1.225 / (1e5 / (287.053 * (273.15 + temp_c))))
+
+    for version_first in (False, True):
+        g, clock = guard()
+        if version_first:
+            g.firmware_version(3, 9, 11)
+        g.message("HEARTBEAT", hb_ardupilot, (1, 1))
+        g.message("SCALED_PRESSURE", {"time_boot_ms": 2000, "press_abs": 1000.0, "press_diff": 0.0,
+                                      "temperature": 5500, "temperature_press_diff": 0}, (1, 1))
+        if not version_first:
+            assert g.baro_temp_clamp_c == 35.0 and tas(g, clock) == pytest.approx(tas_at(35.0), rel=1e-4)
+            g.firmware_version(3, 9, 11)
+        assert g.firmware == "ArduPilot 3.9.11" and g.baro_temp_clamp_c == 25.0
+        assert tas(g, clock) == pytest.approx(tas_at(25.0), rel=1e-4)
+        g.firmware_version(4, 5, 7)                                   # an update in flight: the 4.x clamp again
+        assert g.baro_temp_clamp_c == 35.0 and tas(g, clock) == pytest.approx(tas_at(35.0), rel=1e-4)
+    g, clock = guard(baro_temp_clamp_c=30.0)
+    g.message("HEARTBEAT", {**hb_ardupilot, "autopilot": 12}, (1, 1))
+    g.firmware_version(1, 15, 4)
+    assert g.baro_temp_clamp_c == 30.0 and g.firmware == "autopilot type 12 1.15.4"
+    g, clock = guard()
+    g.message("HEARTBEAT", hb_ardupilot, (1, 1))
+    g.firmware_version(3, -1, 2)
+    g.firmware_version(300, 1, 2)
+    assert g.baro_temp_clamp_c == 35.0 and g.firmware == ""
+
+
 def test_samples_run_on_the_autopilot_clock_at_its_rate():
     """A SITL at --speedup 5: the autopilot's stamps advance five times faster than the companion's clock; the
     samples' times advance with the stamps (the estimator's physics runs on the autopilot's time), start at the

@@ -365,6 +365,7 @@ def test_resume_flies_only_the_missing_runs(campaigns: Mapping[str, Any]) -> Non
         assert run_path(c["local"], i).read_text() == c["texts"][i]
     camp = json.loads((c["local"] / "campaign.json").read_text())
     assert [s["flown"] for s in camp["sessions"]] == [2, 2]
+    assert all(s["host"]["python_loop_ns"] > 0 for s in camp["sessions"])   # each session's throughput has its host
     summary = json.loads((c["local"] / "summary.json").read_text())
     assert summary["campaign"]["n_records"] == 4 and summary["campaign"]["missing_runs"] == []
     assert (c["local"] / "report.html").exists()
