@@ -803,15 +803,15 @@ class TelemetryGuard:
         if self._version is None or self._autopilot_type is None:
             return
         major, minor, patch = self._version
-        if self._autopilot_type != MAV_AUTOPILOT_ARDUPILOTMEGA:
+        before = self.firmware
+        if self._autopilot_type == MAV_AUTOPILOT_ARDUPILOTMEGA:
+            self.firmware = f"ArduPilot {major}.{minor}.{patch}"
+            self._ground_air.set_clamp(ardupilot_major_baro_temp_clamp_c(major))
+        else:
             self.firmware = f"autopilot type {self._autopilot_type} {major}.{minor}.{patch}"
-            return
-        self.firmware = f"ArduPilot {major}.{minor}.{patch}"
-        clamp_c = ardupilot_major_baro_temp_clamp_c(major)
-        if clamp_c != self._ground_air.baro_temp_clamp_c:
-            log.info("%s: baro temperature clamp %.0f degC (was %.0f)", self.firmware, clamp_c,
+        if self.firmware != before:
+            log.info("autopilot firmware: %s; baro temperature clamp %.0f degC", self.firmware,
                      self._ground_air.baro_temp_clamp_c)
-            self._ground_air.set_clamp(clamp_c)
 
     @property
     def baro_temp_clamp_c(self) -> float:
@@ -1142,7 +1142,6 @@ class CompanionLink:
                 await asyncio.sleep(wait_s)
                 continue
             self.guard.firmware_version(int(v.flight_sw_major), int(v.flight_sw_minor), int(v.flight_sw_patch))
-            log.info("autopilot firmware: %s", self.guard.firmware or "not known")
             return
         log.warning("the autopilot sent no AUTOPILOT_VERSION: baro temperature clamp %.0f degC (baro_temp_clamp_c)",
                     self.guard.baro_temp_clamp_c)
