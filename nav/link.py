@@ -127,6 +127,7 @@ EARTH_RADIUS_M = 6371008.8
 GRAVITY_M_S2 = 9.80665
 MAV_COMP_ID_ONBOARD_COMPUTER = 191
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
+MAV_CMD_REQUEST_MESSAGE = 512
 MAV_RESULT_ACCEPTED = 0
 MAV_RESULT_UNSUPPORTED = 3
 MAV_FRAME_BODY_FRD = 12
@@ -134,10 +135,10 @@ MAV_FRAME_LOCAL_FRD = 20
 MAV_ESTIMATOR_TYPE_VIO = 3
 UINT16_UNKNOWN = 65535
 INT16_UNKNOWN = 32767
-#: MAVLink message ids of the messages the link asks rates for
+#: MAVLink message ids of the messages the link asks for (rates; AUTOPILOT_VERSION once)
 MESSAGE_IDS = {"ATTITUDE": 30, "ATTITUDE_QUATERNION": 31, "HIGHRES_IMU": 105, "SCALED_IMU": 26, "RAW_IMU": 27,
                "SCALED_IMU2": 116, "SCALED_IMU3": 129, "SCALED_PRESSURE": 29, "ALTITUDE": 141, "VFR_HUD": 74,
-               "GPS_RAW_INT": 24, "GLOBAL_POSITION_INT": 33}
+               "GPS_RAW_INT": 24, "GLOBAL_POSITION_INT": 33, "AUTOPILOT_VERSION": 148}
 #: each input kind's messages, in order of preference (module docstring)
 SOURCES: dict[str, tuple[str, ...]] = {
     "attitude": ("ATTITUDE", "ATTITUDE_QUATERNION"),
@@ -701,9 +702,12 @@ class TelemetryGuard:
                 return None
             why = self.senders.check(name, *sender)
             if why:
-                self._reject(kind or "tracking", why)
+                self._reject(kind or ("version" if name == "AUTOPILOT_VERSION" else "tracking"), why)
                 return None
         if kind is None:
+            if name == "AUTOPILOT_VERSION":
+                self._version_msg(f)
+                return None
             return self.tracking(f) if name == "CAMERA_TRACKING_IMAGE_STATUS" else None
         try:
             if name == "HIGHRES_IMU":
@@ -788,8 +792,24 @@ class TelemetryGuard:
             if upd & (1 << 12) and math.isfinite(t_c) and -80.0 < t_c < 80.0:
                 self._ground_air.update(self._pressure_pa, t_c)
 
+    def _version_msg(self, f: dict[str, Any]) -> None:
+        """AUTOPILOT_VERSION: ``flight_sw_version`` is major << 24 | minor << 16 | patch << 8 | release type."""
+        try:
+            v = int(f["flight_sw_version"])
+        except (KeyError, TypeError, ValueError):
+            self._reject("version", "malformed AUTOPILOT_VERSION")
+            return
+        if not 0 <= v < 2**32:
+            self._reject("version", "malformed AUTOPILOT_VERSION")
+            return
+        self.firmware_version((v >> 24) & 0xFF, (v >> 16) & 0xFF, (v >> 8) & 0xFF)
+
+    @property
+    def version_known(self) -> bool:
+        return self._version is not None
+
     def firmware_version(self, major: int, minor: int, patch: int) -> None:
-        """The autopilot's flight software version (its AUTOPILOT_VERSION, read through MAVSDK's Info plugin).  An
+        """The autopilot's flight software version (its AUTOPILOT_VERSION, asked for on connecting).  An
         ArduPilot's decides the baro temperature clamp of the airspeed's air density (35 degC from 4.0 on, 25 degC
         before; :mod:`common.atmosphere`); ``baro_temp_clamp_c`` applies until then and to other autopilots."""
         if not all(isinstance(v, int) and 0 <= v < 256 for v in (major, minor, patch)):
@@ -1040,11 +1060,11 @@ class CompanionLink:
         self._direct = MavlinkDirectAsync(system)
         self._mocap = MocapAsync(system)
         names = [n for kind_names in SOURCES.values() for n in kind_names] + ["CAMERA_TRACKING_IMAGE_STATUS",
-                                                                             "HEARTBEAT"]
+                                                                             "HEARTBEAT", "AUTOPILOT_VERSION"]
         self._tasks = [asyncio.ensure_future(self._pump(self._direct.subscribe_message(n), self._converter(n)))
                        for n in names]
         self._tasks.append(asyncio.ensure_future(self._watch(system)))
-        self._tasks.append(asyncio.ensure_future(self._read_version(system)))
+        self._tasks.append(asyncio.ensure_future(self._request_version()))
         self.stats.connected = True
         log.info("connected to autopilot (system %d) on %s", self.target_system, self.url)
         if self.cfg.request_rates:
@@ -1128,23 +1148,28 @@ class CompanionLink:
             except queue.Full:
                 self.stats.dropped_samples += 1
 
-    async def _read_version(self, system: Any, tries: int = 10, wait_s: float = 1.0) -> None:
-        """The autopilot's AUTOPILOT_VERSION, which MAVSDK requests on discovery, into the guard; retried while
-        MAVSDK has none yet."""
-        from mavsdk.asyncio.plugins.info import InfoAsync
+    async def _request_version(self, tries: int = 5, wait_s: float = 2.0) -> None:
+        """Ask for the autopilot's AUTOPILOT_VERSION (MAV_CMD_REQUEST_MESSAGE) until the guard has it: MAVSDK asks
+        for it on discovery too, but that answer may come before this link subscribed."""
+        from mavsdk.asyncio.plugins.mavlink_direct import MavlinkMessage
 
-        info = InfoAsync(system)
+        fields = {"target_system": self.target_system, "target_component": self.target_component,
+                  "command": MAV_CMD_REQUEST_MESSAGE, "confirmation": 0,
+                  "param1": float(MESSAGE_IDS["AUTOPILOT_VERSION"]), "param2": 0.0, "param3": 0.0, "param4": 0.0,
+                  "param5": 0.0, "param6": 0.0, "param7": 0.0}
         for _ in range(tries):
+            if self.guard.version_known:
+                return
+            msg = MavlinkMessage(message_name="COMMAND_LONG", target_system_id=self.target_system,
+                                 target_component_id=self.target_component, fields_json=json.dumps(fields))
             try:
-                v = await info.get_version()
-            except Exception as e:  # noqa: BLE001 - InfoError until the message came; any failure leaves the default
-                log.debug("autopilot version not available yet: %s", e)
-                await asyncio.sleep(wait_s)
-                continue
-            self.guard.firmware_version(int(v.flight_sw_major), int(v.flight_sw_minor), int(v.flight_sw_patch))
-            return
-        log.warning("the autopilot sent no AUTOPILOT_VERSION: baro temperature clamp %.0f degC (baro_temp_clamp_c)",
-                    self.guard.baro_temp_clamp_c)
+                await self._direct.send_command(msg)
+            except Exception as e:  # noqa: BLE001 - unanswered: the version may still come; asked again below
+                log.debug("AUTOPILOT_VERSION request: %s", e)
+            await asyncio.sleep(wait_s)
+        if not self.guard.version_known:
+            log.warning("the autopilot sent no AUTOPILOT_VERSION: baro temperature clamp %.0f degC "
+                        "(baro_temp_clamp_c)", self.guard.baro_temp_clamp_c)
 
     async def _watch(self, system: Any) -> None:
         async for connected in system.is_connected_state():

@@ -36,7 +36,9 @@ Commands
     acceleration limit m/s^2) is flown in GUIDED mode (ACK ACCEPTED): the JSBSim autopilot's heading hold at the
     configured height and airspeed (its own 45 deg roll limit; param3 is not applied there), the kinematic plane's
     bank-limited heading hold (param3 applied).  Heading type 0 (course) is flown as a heading, as ArduPlane without
-    GNSS has no course to close the loop on.  Other commands are acknowledged UNSUPPORTED.  Every received message
+    GNSS has no course to close the loop on.  ``MAV_CMD_REQUEST_MESSAGE`` for AUTOPILOT_VERSION is answered with
+    :data:`VEHICLE_FIRMWARE` (the ArduPlane whose behaviour the vehicle follows).  Other commands are acknowledged
+    UNSUPPORTED.  Every received message
     is counted, the last one of each type kept, and every value the companion sent is checked
     (:func:`received_problems`): the summary lists anything non-finite or out of range that reached the vehicle.
 
@@ -108,6 +110,8 @@ log = logging.getLogger(__name__)
 
 GRAVITY_M_S2 = 9.80665
 EARTH_RADIUS_M = 6371008.8  # mean Earth radius: local flat-earth conversion of NED offsets to lat/lon
+#: the ArduPlane version the vehicle answers AUTOPILOT_VERSION with (an ArduPlane 4.x: baro clamp 35 degC)
+VEHICLE_FIRMWARE = (4, 5, 7)
 ARDUPLANE_MODE_GUIDED = 15
 ARDUPLANE_MODE_AUTO = 10
 MAV_RESULT_ACCEPTED = 0
@@ -1010,7 +1014,14 @@ class MavlinkVehicle:
                 self.plant.command_heading(math.radians(msg.param2), max(msg.param3, 0.05))
                 self.heading_commands.append((round(self.t_s, 3), float(msg.param2)))
                 result = MAV_RESULT_ACCEPTED
+        elif msg.command == mavutil.mavlink.MAV_CMD_REQUEST_MESSAGE and \
+                int(msg.param1) == mavutil.mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
+            result = MAV_RESULT_ACCEPTED
         self._send(self.conn.mav.command_ack_encode(msg.command, result))
+        if result == MAV_RESULT_ACCEPTED and msg.command == mavutil.mavlink.MAV_CMD_REQUEST_MESSAGE:
+            major, minor, patch = VEHICLE_FIRMWARE
+            version = major << 24 | minor << 16 | patch << 8 | mavutil.mavlink.FIRMWARE_VERSION_TYPE_OFFICIAL
+            self._send(self.conn.mav.autopilot_version_encode(0, version, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, 0))
 
     def _fuzz(self, f: Fault) -> None:
         """Send this step's share of the fault's random MAVLink frames to the companion."""

@@ -20,7 +20,7 @@ from nav.link import (
     check_estimate,
     wind_from_deg,
 )
-from sim.mavlink_vehicle import MavlinkVehicle, VehicleConfig
+from sim.mavlink_vehicle import VEHICLE_FIRMWARE, MavlinkVehicle, VehicleConfig
 from tests.polling import wait_for
 
 
@@ -104,6 +104,10 @@ def test_telemetry_arrives_as_validated_samples(pair):
     assert gnss.fix_type == 3 and np.all(np.isfinite(gnss.vel_ned_m_s[:2]))
     truth_v = veh.vehicle.truth.vel_ned_m_s[:2]
     np.testing.assert_allclose(gnss.vel_ned_m_s[:2], truth_v, atol=0.6)
+    # the link asked for the autopilot's version (MAV_CMD_REQUEST_MESSAGE) and took its ArduPilot 4.x clamp
+    assert wait_for(lambda: link.guard.version_known, 5.0)
+    assert link.guard.firmware == "ArduPilot {}.{}.{}".format(*VEHICLE_FIRMWARE)
+    assert link.guard.baro_temp_clamp_c == 35.0
 
 
 def test_valid_outputs_reach_the_vehicle(pair):
