@@ -1,8 +1,8 @@
 """What host a speed figure was measured on: its CPU, its Python build and three reference timings.
 
-The speed goals are figures "on this machine", and machines of one kind differ: two hosts of the same kind (2 cores,
-x86_64) have run this project's Python 2.5 times apart.  Every benchmark prints this record beside its figures, so
-that a figure can be compared with one from another host by the reference timings, not by the host's name:
+The speed goals are figures "on this machine", and machines of one kind differ, even from one minute to the next on a
+shared host (docs/speed.md).  Every benchmark prints this record beside its figures, so that a figure can be
+compared with one from another host by the reference timings, not by the host's name:
 
 - ``python_loop_ns``: one iteration of a fixed pure-Python loop (float arithmetic, a call, a list append), the
   interpreter's speed, which the filter's and the simulator's per-sample code follows;
@@ -21,6 +21,7 @@ import statistics
 import sys
 import sysconfig
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -39,7 +40,7 @@ def _cpu_model() -> str:
     return platform.processor() or platform.machine()
 
 
-def _median_per_call(fn: Any, calls: int) -> float:
+def _median_per_call(fn: Callable[[], object], calls: int) -> float:
     """Median over :data:`_REPEATS` of the time per call of ``fn`` run ``calls`` times (s)."""
     out = []
     for _ in range(_REPEATS):
