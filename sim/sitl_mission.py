@@ -738,6 +738,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="experiment: another ArduPlane parameter NAME=VALUE (repeatable)")
     ap.add_argument("--route", choices=("racetrack", "transit"), default="racetrack",
                     help="laps of a racetrack, or a straight line away from home")
+    ap.add_argument("--mount-yaw-error-deg", type=float, default=0.0,
+                    help="the camera bridge renders the camera turned this much further in yaw than its file says")
+    ap.add_argument("--calibration-flight", action="store_true",
+                    help="leave the companion's optical rotation free (a flight for gsoe calibrate-mount)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="out/sitl_mission")
     args = ap.parse_args(argv)
@@ -746,7 +750,8 @@ def main(argv: list[str] | None = None) -> int:
                        velocity_message=args.velocity_message, extnav=not args.no_extnav,
                        viso_delay_ms=args.viso_delay_ms, viso_vel_m_nse=args.viso_vel_m_nse,
                        companion_settings=tuple(args.settings), oracle_confidence=args.oracle,
-                       source_switch=args.source_switch, ap_params=tuple(args.ap_params), route=args.route)
+                       source_switch=args.source_switch, ap_params=tuple(args.ap_params), route=args.route,
+                       mount_yaw_error_deg=args.mount_yaw_error_deg, mount_calibrated=not args.calibration_flight)
     out = Path(args.out)
     results: dict[str, Any] = {}
     results["extnav" if spec.extnav else "dr_alone"] = fly_mission(spec, out / ("extnav" if spec.extnav
