@@ -48,12 +48,14 @@ def test_the_companion_asks_its_rates_and_reaches_a_valid_estimate_within_10_s_o
 
 
 def test_the_companion_reads_the_autopilots_version_and_takes_its_baro_temperature_clamp(flight):
-    """ArduPlane answers MAVSDK's AUTOPILOT_VERSION request: a 4.x takes the 35 degC clamp."""
+    """ArduPlane answers the link's AUTOPILOT_VERSION request (MAV_CMD_REQUEST_MESSAGE): a 4.x takes the 35 degC
+    clamp."""
     _, out = flight
     log_text = (out / "companion.log").read_text()
-    found = re.search(r"autopilot firmware: ArduPilot (\d+)\.(\d+)\.(\d+)", log_text)
+    found = re.search(r"autopilot firmware: ArduPilot (\d+)\.(\d+)\.(\d+); baro temperature clamp (\d+) degC",
+                      log_text)
     assert found, log_text[-3000:]
-    assert int(found.group(1)) >= 4
+    assert int(found.group(1)) >= 4 and int(found.group(4)) == 35
 
 
 def test_drift_error_with_gnss_is_within_half_a_degree(flight):
