@@ -57,7 +57,8 @@ Airspeed
     ArduPilot logs equivalent airspeed (EAS); ``tas_m_s = eas_m_s * sqrt(rho0 / rho)`` with the density at the
     logged static pressure and the air temperature ArduPilot's EKF assumes for the same conversion: the baro's own
     temperature, at most the firmware's clamp (a board's baro reads high, self-heated; the version the log names,
-    in a DataFlash ``MSG`` or ``VER`` or a tlog's ``STATUSTEXT``, else ``baro_temp_clamp_c``), at the log's lowest
+    in a DataFlash ``MSG`` or ``VER``, a tlog's ``STATUSTEXT`` or an ArduPilot's ``AUTOPILOT_VERSION``, else
+    ``baro_temp_clamp_c``), at the log's lowest
     altitude, less the ISA lapse rate above it (:mod:`common.atmosphere`, the live link's policy too;
     ``ReadReport.air_temp_c``; 10 K is 1.7 % of TAS; docs/real-data.md).
     Without a baro temperature the ISA atmosphere's; without a logged pressure ``tas_m_s = eas_m_s`` and the report
@@ -375,6 +376,18 @@ def _tlog_firmware(msg: Any) -> str:
     return text if ardupilot_baro_temp_clamp_c(text) is not None else ""
 
 
+def _tlog_version(msg: Any) -> str:
+    """An AUTOPILOT_VERSION's flight software version as an ArduPilot banner names it ("ArduPilot V4.5.1"; the
+    caller takes it only from an ArduPilot vehicle); ``""`` when the field is damaged."""
+    try:
+        v = int(msg.flight_sw_version)
+    except (AttributeError, TypeError, ValueError):
+        return ""
+    if not 0 < v < 2**32:
+        return ""
+    return f"ArduPilot V{(v >> 24) & 0xFF}.{(v >> 16) & 0xFF}.{(v >> 8) & 0xFF}"
+
+
 def _stamp(msg: Any) -> tuple[str, int] | None:
     """The message's own timestamp: ``("boot", us)``, ``("unix", us)`` or None."""
     if hasattr(msg, "time_boot_ms"):
@@ -420,6 +433,7 @@ def read_tlog(path: Path, baro_temp_clamp_c: float = ARDUPILOT_BARO_TEMP_CLAMP_C
     anchors: list[_TlogAnchor] = []
     vehicle: tuple[int, int, int] | None = None  # (sysid, compid, autopilot)
     banners: dict[tuple[int, int], str] = {}      # the firmware each sender names in a STATUSTEXT
+    versions: dict[tuple[int, int], str] = {}     # ... or in an AUTOPILOT_VERSION (an ArduPilot's, as its banner)
     last_end = skipped = 0
     try:
         conn = mavutil.mavlogfile(str(path), robust_parsing=True)
@@ -460,6 +474,10 @@ def read_tlog(path: Path, baro_temp_clamp_c: float = ARDUPILOT_BARO_TEMP_CLAMP_C
                 text = _tlog_firmware(msg)
                 if text:
                     banners[src] = text
+            elif mtype == "AUTOPILOT_VERSION" and src not in versions:
+                text = _tlog_version(msg)
+                if text:
+                    versions[src] = text
             if mtype not in _TLOG_TYPES:
                 continue
             try:
@@ -486,7 +504,8 @@ def read_tlog(path: Path, baro_temp_clamp_c: float = ARDUPILOT_BARO_TEMP_CLAMP_C
     else:
         recs = [r for r in recs if r[1] == vehicle[:2]]
         anchors = [a for a in anchors if a[1] == vehicle[:2]]
-        raw.firmware = banners.get(vehicle[:2], "")
+        raw.firmware = banners.get(vehicle[:2], "") or (
+            versions.get(vehicle[:2], "") if vehicle[2] == MAV_AUTOPILOT_ARDUPILOTMEGA else "")
     present = {r[0] for r in recs}
     imu_type = None
     for cand in _TLOG_IMU_PREFERENCE:

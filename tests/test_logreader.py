@@ -284,6 +284,29 @@ def test_a_tlog_naming_its_firmware_takes_that_firmwares_baro_clamp(tmp_path, lo
     assert np.all((ratio > math.sqrt(310.0 / 300.0) - 1e-3) & (ratio < math.sqrt(300.0 / 290.0) + 1e-3))
 
 
+def test_a_tlog_with_the_vehicles_autopilot_version_takes_that_versions_baro_clamp(tmp_path, long_log):
+    """A ground station that asked for AUTOPILOT_VERSION logged it: the ALFA log with ArduPlane 4.5.1's answer (from
+    the vehicle, which its heartbeat names ArduPilot) in front takes 4.x's 35 degC, as the live link does; the same
+    answer from another system, or a damaged one, names nothing."""
+    data = shared_data("flightlogs", LONG).read_bytes()
+    from pymavlink.dialects.v10 import ardupilotmega as mav1
+
+    def with_version(name: str, src: tuple[int, int], version: int) -> Path:
+        enc = mav1.MAVLink(None, srcSystem=src[0], srcComponent=src[1])
+        msg = enc.autopilot_version_encode(0, version, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, 0).pack(enc)
+        path = tmp_path / name
+        path.write_bytes(data[:8] + msg + data)
+        return path
+
+    v451 = (4 << 24) | (5 << 16) | (1 << 8) | 255
+    rep = read_log(with_version("vehicle.tlog", (1, 1), v451), ARDUPILOT_3_BARO_TEMP_CLAMP_C).report
+    assert rep.firmware == "ArduPilot V4.5.1" and rep.baro_temp_clamp_c == 35.0
+    assert rep.air_temp_c == pytest.approx(35.0)
+    for name, src, version in (("other.tlog", (7, 1), v451), ("damaged.tlog", (1, 1), 0)):
+        rep = read_log(with_version(name, src, version), ARDUPILOT_3_BARO_TEMP_CLAMP_C).report
+        assert rep.firmware == "" and rep.baro_temp_clamp_c == ARDUPILOT_3_BARO_TEMP_CLAMP_C, name
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # Damaged and unknown files
 
