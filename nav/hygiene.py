@@ -35,6 +35,18 @@ NOT_AUTOPILOT_TYPES = frozenset({6, 18, 26, 27, 30})  # GCS, ONBOARD_CONTROLLER,
 TRACKER_MESSAGES = frozenset({"CAMERA_TRACKING_IMAGE_STATUS"})
 
 
+def flight_sw_version(value: Any) -> tuple[int, int, int] | None:
+    """AUTOPILOT_VERSION's ``flight_sw_version`` (major << 24 | minor << 16 | patch << 8 | release type) as (major,
+    minor, patch); None for a damaged field (not a uint32, or major 0: no release is numbered so)."""
+    try:
+        v = int(value)
+    except (TypeError, ValueError, OverflowError):
+        return None
+    if not 0 <= v < 2**32 or v >> 24 == 0:
+        return None
+    return (v >> 24) & 0xFF, (v >> 16) & 0xFF, (v >> 8) & 0xFF
+
+
 class AutopilotSenders:
     """The autopilot's (system, component), configured or learnt from its HEARTBEAT (module docstring).
 

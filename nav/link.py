@@ -113,7 +113,7 @@ from common.config import In, Validated, require
 from common.samples import AirspeedSample, AttitudeSample, BaroSample, GnssSample, ImuSample
 from gsoe.rotation import R_nb_from_euler
 from nav.gnss_monitor import GPS_FIX_TYPE_3D
-from nav.hygiene import MAV_AUTOPILOT_ARDUPILOTMEGA, AutopilotSenders
+from nav.hygiene import MAV_AUTOPILOT_ARDUPILOTMEGA, AutopilotSenders, flight_sw_version
 
 log = logging.getLogger(__name__)
 
@@ -793,16 +793,12 @@ class TelemetryGuard:
                 self._ground_air.update(self._pressure_pa, t_c)
 
     def _version_msg(self, f: dict[str, Any]) -> None:
-        """AUTOPILOT_VERSION: ``flight_sw_version`` is major << 24 | minor << 16 | patch << 8 | release type."""
-        try:
-            v = int(f["flight_sw_version"])
-        except (KeyError, TypeError, ValueError):
+        """AUTOPILOT_VERSION: its ``flight_sw_version`` (:func:`nav.hygiene.flight_sw_version`)."""
+        version = flight_sw_version(f.get("flight_sw_version"))
+        if version is None:
             self._reject("version", "malformed AUTOPILOT_VERSION")
             return
-        if not 0 <= v < 2**32:
-            self._reject("version", "malformed AUTOPILOT_VERSION")
-            return
-        self.firmware_version((v >> 24) & 0xFF, (v >> 16) & 0xFF, (v >> 8) & 0xFF)
+        self.firmware_version(*version)
 
     @property
     def version_known(self) -> bool:

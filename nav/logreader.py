@@ -101,7 +101,7 @@ from common.atmosphere import (
     pressure_altitude_m,
 )
 from common.samples import AirspeedSample, AttitudeSample, BaroSample, GnssSample, ImuSample
-from nav.hygiene import MAV_AUTOPILOT_ARDUPILOTMEGA, MAV_AUTOPILOT_INVALID
+from nav.hygiene import MAV_AUTOPILOT_ARDUPILOTMEGA, MAV_AUTOPILOT_INVALID, flight_sw_version
 
 log = logging.getLogger(__name__)
 
@@ -379,13 +379,8 @@ def _tlog_firmware(msg: Any) -> str:
 def _tlog_version(msg: Any) -> str:
     """An AUTOPILOT_VERSION's flight software version as an ArduPilot banner names it ("ArduPilot V4.5.1"; the
     caller takes it only from an ArduPilot vehicle); ``""`` when the field is damaged."""
-    try:
-        v = int(msg.flight_sw_version)
-    except (AttributeError, TypeError, ValueError):
-        return ""
-    if not 0 < v < 2**32:
-        return ""
-    return f"ArduPilot V{(v >> 24) & 0xFF}.{(v >> 16) & 0xFF}.{(v >> 8) & 0xFF}"
+    version = flight_sw_version(getattr(msg, "flight_sw_version", None))
+    return "" if version is None else "ArduPilot V{}.{}.{}".format(*version)
 
 
 def _stamp(msg: Any) -> tuple[str, int] | None:

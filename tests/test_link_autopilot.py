@@ -201,7 +201,18 @@ def test_the_autopilots_version_sets_the_clamp_an_ardupilot_3_took_25_degc():
     g.message("HEARTBEAT", hb_ardupilot, (1, 1))
     g.firmware_version(3, -1, 2)
     g.firmware_version(300, 1, 2)
-    assert g.baro_temp_clamp_c == 35.0 and g.firmware == ""
+    assert g.baro_temp_clamp_c == 35.0 and g.firmware == "" and not g.version_known
+    # the message itself: flight_sw_version = major << 24 | minor << 16 | patch << 8 | type; garbage (major 0
+    # included) is counted and changes nothing, a foreign sender's is refused
+    for bad in ({}, {"flight_sw_version": "x"}, {"flight_sw_version": -1}, {"flight_sw_version": 2**40},
+                {"flight_sw_version": 0}, {"flight_sw_version": None}):
+        assert g.message("AUTOPILOT_VERSION", bad, (1, 1)) is None
+    assert g.rejected["version:malformed AUTOPILOT_VERSION"] == 6 and not g.version_known
+    v382 = (3 << 24) | (8 << 16) | (2 << 8) | 255
+    g.message("AUTOPILOT_VERSION", {"flight_sw_version": v382}, (7, 1))
+    assert not g.version_known and any(k.startswith("version:from system 7") for k in g.rejected)
+    g.message("AUTOPILOT_VERSION", {"flight_sw_version": v382}, (1, 1))
+    assert g.firmware == "ArduPilot 3.8.2" and g.baro_temp_clamp_c == 25.0
 
 
 def test_samples_run_on_the_autopilot_clock_at_its_rate():

@@ -148,7 +148,7 @@ PAPER_SIL_AIRSPEED_M_S = 20.0
 """The paper_sil mission's typical airspeed (its waypoints ask 18-24 m/s)."""
 
 
-@pytest.mark.slow  # a 300 s flight (three for the vertical wind): 30-120 s on a slow host
+@pytest.mark.slow  # a 300 s flight (three for the vertical wind)
 def test_aoa_offset_learns_a_wrong_lift_model_offset(tmp_path):
     """A config whose zero-lift coefficient is 0.1 above the airframe's (read from the simulator's JSBSim file, the
     independent truth) makes the lift-model angle read ``0.1 / C_Lalpha`` (1.3 deg) low at every attitude: the
@@ -173,7 +173,7 @@ def test_aoa_offset_learns_a_wrong_lift_model_offset(tmp_path):
 
 
 
-@pytest.mark.slow  # a 300 s flight (three for the vertical wind): 30-120 s on a slow host
+@pytest.mark.slow  # a 300 s flight (three for the vertical wind)
 def test_side_force_offset_removes_the_ahrs_roll_error_from_the_sideslip(tmp_path):
     """An AHRS roll error ``d_phi`` rotates gravity into the filter's body y axis, and the accelerometer-bias state
     takes ``g d_phi`` of it, which the accelerometer never read: the side-force sideslip ``k (f_y - b_y)`` is then
@@ -226,7 +226,7 @@ def _config_with(tmp_path, name: str, **values: object) -> Path:
     return path
 
 
-@pytest.mark.slow  # a 300 s flight (three for the vertical wind): 30-120 s on a slow host
+@pytest.mark.slow  # a 300 s flight (three for the vertical wind)
 def test_vertical_wind_state_follows_the_vertical_gusts_and_improves_the_wind(tmp_path):
     """In a bank the body y axis takes ``sin(phi)`` of the vertical air velocity, so a vertical gust reads as
     sideslip; with the vertical wind held at 0 (``wind_d_sigma_ratio = 0``, the PX4/ArduPilot model) the sideslip
