@@ -12,7 +12,7 @@ from numpy.typing import NDArray
 from common.angles import angle_diff, wrap_2pi
 from common.samples import AttitudeSample
 from fusion.config import EkfConfig
-from fusion.process import US_PER_S, yaw_rate
+from fusion.process import S_PER_US, US_PER_S, yaw_rate
 from fusion.state import S
 from fusion.status import REASON_NO_ATTITUDE
 
@@ -147,15 +147,17 @@ def _polar(n: float, e: float, pnn: float, pne: float, pee: float) -> tuple[floa
 
 
 def _heading(att: AttitudeSample | None, rates_b: tuple[float, float, float], yb: float, tau: float, course: float,
-             gs: float, gn: float, ge: float, var_c: float, p: tuple[float, ...]) -> tuple[float, float, float, float]:
-    """Heading ``yaw_ahrs - yaw_bias + yaw_rate * att_delay`` (the AHRS heading lags the turn by the delay), the
-    drift ``course - heading`` and their sigmas; ``p`` = (yy, vel_n-yaw, vel_e-yaw, dd, yaw-delay, vel_n-delay,
-    vel_e-delay) of ``P``."""
+             gs: float, gn: float, ge: float, var_c: float, p: tuple[float, ...], t_us: int
+             ) -> tuple[float, float, float, float]:
+    """Heading at ``t_us`` ``yaw_ahrs - yaw_bias + yaw_rate * (att_delay + t_us - t_att)`` (the AHRS heading lags
+    the turn by the delay; the attitude is the last IMU sample's, stamped ``t_att``, which may be ahead of the
+    state's time), the drift ``course - heading`` and their sigmas; ``p`` = (yy, vel_n-yaw, vel_e-yaw, dd,
+    yaw-delay, vel_n-delay, vel_e-delay) of ``P``."""
     if att is None:
         return math.nan, math.pi, math.nan, math.pi
     pyy, pny, pey, pdd_t, pyd, pnd, ped = p
     rate = yaw_rate(att, rates_b)
-    heading = float(wrap_2pi(att.yaw_rad - yb + rate * tau))
+    heading = float(wrap_2pi(att.yaw_rad - yb + rate * (tau + (t_us - att.t_us) * S_PER_US)))
     drift = float(angle_diff(course, heading))
     var_h = pyy - 2.0 * rate * pyd + rate * rate * pdd_t
     # d drift / d (vel_n, vel_e, yaw_bias, att_delay) = (gn, ge, 1, -rate)
@@ -196,7 +198,7 @@ def make_estimate(cfg: EkfConfig, x: Vec, P: Mat, t_us: int, att: AttitudeSample
     course_sd = min(math.pi, math.sqrt(max(var_c, 0.0)))
     yb, tau = xl[_I_YAW], xl[_I_DELAY]
     heading, heading_sd, drift, drift_sd = _heading(att, rates_b, yb, tau, course, gs, gn, ge, var_c,
-                                                    (pyy, pny, pey, pdd_t, pyd, pnd, ped))
+                                                    (pyy, pny, pey, pdd_t, pyd, pnd, ped), t_us)
     # wind speed and the direction it blows from: atan2(-we, -wn) (the gradient's sign does not change the variance)
     ws, ws_sd, var_w, _, _ = _polar(xl[iw], xl[iw + 1], qnn, qne, qee)
     wd_sd = min(math.pi, math.sqrt(max(var_w, 0.0))) if ws > 0.0 else math.pi

@@ -1,5 +1,12 @@
 """The IMU integrator: sums the IMU samples between covariance predictions and runs them through the process model.
 
+An IMU sample is the IMU's output over the interval its stamp ends (the mean of an averaging link, the output of
+the IMU's filter), paired with the attitude at its stamp, the interval's end: its specific force is turned back to
+the interval's middle with its own body rates, ``f - (dt / 2) omega x f`` (first order).  Otherwise a sample rotated
+by its end's attitude leads the body by half an interval, 10 ms at a link's 50 Hz, and in a turn the velocity's
+direction leads by that much.  The last sample held past its stamp (:meth:`ImuIntegrator.predict_to`) is turned on,
+``+``, to the middle of that extension.
+
 The per-IMU-sample work is a few floating-point additions: samples with the same AHRS attitude are summed as
 ``sum f_b dt``, ``sum (omega_b x f_b) dt`` and their first moments ``... dt t_mid`` (``t_mid``: the sample interval's
 midpoint from the start of the prediction); when the attitude changes, or when the covariance is predicted, these
@@ -131,7 +138,8 @@ class ImuIntegrator:
                 lat += (fy - lat) * k_lp
                 nrm += (fz - nrm) * k_lp
                 mid = (t + t_in - 2 * t_x) * (0.5 * S_PER_US)
-                ax, ay, az = fx * dt, fy * dt, fz * dt
+                h = 0.5 * dt                  # the attitude is the interval's end's: rotate back to its middle
+                ax, ay, az = (fx - h * wx) * dt, (fy - h * wy) * dt, (fz - h * wz) * dt
                 s0, s1, s2, s3, s4, s5 = s0 + ax, s1 + ay, s2 + az, s3 + ax * mid, s4 + ay * mid, s5 + az * mid
                 s6, s7 = s6 + dt, s7 + dt * mid
                 ax, ay, az = wx * dt, wy * dt, wz * dt
@@ -201,7 +209,11 @@ class ImuIntegrator:
             mid = (t + t_in - 2 * self.t_x_us) * (0.5 * S_PER_US)
             if self._f_held is not None:
                 seg = self._seg
-                for k, v in enumerate(self._f_held):          # f (0-2) and omega x f (3-5) of the held sample
+                f_held = self._f_held                            # f (0-2) and omega x f (3-5) of the held sample
+                h = 0.5 * dt                 # the attitude is the interval's start's: rotate on to its middle
+                for k, v in enumerate(f_held):
+                    if k < 3:
+                        v += h * f_held[k + 3]
                     o = k if k < 3 else k + 5                    # their sums' places in the segment
                     seg[o] += v * dt
                     seg[o + 3] += v * dt * mid

@@ -3,7 +3,8 @@
 Prediction
     ``v' = R_z(-yaw_bias) R_nb_ahrs (I + [omega_b x] att_delay) (f_b - accel_bias_b) + g_n`` and ``p' = v``: the
     AHRS attitude stamped ``t`` describes the body at ``t - att_delay``, and the gyro's body rates ``omega_b``
-    carry it forward (first order; the ``att_delay omega_b x accel_bias_b`` term is dropped).  The IMU samples of
+    carry it forward (first order; the ``att_delay omega_b x accel_bias_b`` term is dropped); ``f_b`` is already
+    turned to the middle of its sample's interval (:mod:`fusion.imu`).  The IMU samples of
     one prediction arrive summed as an :class:`ImuIncrement` (:mod:`fusion.imu` builds it); with its first moments
     the mean of one prediction over many samples equals the sample-by-sample integration of a piecewise constant
     specific force (velocity and position, bias, heading and delay Jacobians included; tests check it).

@@ -2,15 +2,15 @@
 
 The aircraft flies a 2-D coordinated-turn trajectory (piecewise constant turn rate, constant horizontal airspeed)
 with a gentle sinusoidal climb/descent, in a wind that is constant or drifts linearly.  Positions are integrated
-exactly per grid interval; the IMU measures the exact specific force in the true body frame.  Sensors add seeded
-errors (IMU noise and bias, AHRS noise and bias, pitot noise and scale error, baro noise/bias/drift, GNSS noise);
-the optical steps are synthesised from the true positions in the frame of the *true* base heading (the camera is
-body-fixed and the optical estimator de-rotates it with the same AHRS attitude it labels the cycle with, so an AHRS
-heading error cancels in the image and only shows as ``base_yaw_rad - true heading``), at the base snapshot's true
-ground sample distance, plus matcher noise and a
-relative-attitude pixel error, in cycles that restart every ``cycle_frames`` frames (the last frame of a cycle is
-the next cycle's base, as in :mod:`gsoe.cycle`).  What the filter assumes is :class:`fusion.config.EkfConfig`; the
-values here are the "true" errors (STYLE section 8).
+exactly per grid interval; the IMU delivers the mean of the exact specific force and body rates, in the true body
+frame, over the interval each sample ends (as the SIL vehicle's averaging does).  Sensors add seeded errors (IMU
+noise and bias, AHRS noise and bias, pitot noise and scale error, baro noise/bias/drift, GNSS noise); the optical
+steps are synthesised from the true positions in the frame of the *true* base heading (the camera is body-fixed and
+the optical estimator de-rotates it with the same AHRS attitude it labels the cycle with, so an AHRS heading error
+cancels in the image and only shows as ``base_yaw_rad - true heading``), at the base snapshot's true ground sample
+distance, plus matcher noise and a relative-attitude pixel error, in cycles that restart every ``cycle_frames``
+frames (the last frame of a cycle is the next cycle's base, as in :mod:`gsoe.cycle`).  What the filter assumes is
+:class:`fusion.config.EkfConfig`; the values here are the "true" errors (STYLE section 8).
 """
 
 from __future__ import annotations
@@ -149,14 +149,19 @@ def make_flight(cfg: TruthConfig) -> Flight:
     yb = math.radians(cfg.ahrs_yaw_bias_deg)
     an = math.radians(cfg.ahrs_noise_deg)
     lag = int(round(cfg.ahrs_yaw_latency_s * cfg.grid_hz))
+    # the attitude at t_k is the one the interval before it ended with (the bank steps with the turn rate at the
+    # grid's instants; an IMU sample stamped t_k is that interval's mean)
+    roll_ahrs = np.concatenate([roll[:1], roll[:-1]])
     for k in range(0, n, cfg.ahrs_div):
         e = rng.normal(0.0, an, 3)
-        ev.append((int(t_us[k]), 0, "att", AttitudeSample(int(t_us[k]), float(roll[k] + rp_bias[0] + e[0]),
+        ev.append((int(t_us[k]), 0, "att", AttitudeSample(int(t_us[k]), float(roll_ahrs[k] + rp_bias[0] + e[0]),
                                                            float(pitch[k] + rp_bias[1] + e[1]),
                                                            float(psi[max(k - lag, 0)] + yb + e[2]))))
     for k in range(cfg.imu_div, n, cfg.imu_div):
-        ev.append((int(t_us[k]), 1, "imu", ImuSample(int(t_us[k]), gyro_b[k].copy(),
-                                                     f_b[k] + ba + rng.normal(0.0, cfg.accel_noise_m_s2, 3))))
+        span = slice(k - cfg.imu_div, k)            # the grid intervals the sample ends (their rates: forward)
+        ev.append((int(t_us[k]), 1, "imu", ImuSample(int(t_us[k]), gyro_b[span].mean(axis=0),
+                                                     f_b[span].mean(axis=0) + ba
+                                                     + rng.normal(0.0, cfg.accel_noise_m_s2, 3))))
     for k in range(cfg.tas_div, n, cfg.tas_div):
         ev.append((int(t_us[k]), 2, "tas", float(tas[k] * (1 + cfg.tas_scale_err) + rng.normal(0, cfg.tas_noise_m_s))))
     for k in range(cfg.baro_div, n, cfg.baro_div):

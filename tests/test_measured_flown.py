@@ -167,9 +167,10 @@ def test_companion_drift_and_wind_within_1_5x_of_gsoe_sim(flown: Flown) -> None:
                                                                flown.sim["wind_speed_rmse_m_s"])
 
 
-@pytest.mark.xfail(strict=True, reason="the link's airspeed (VFR_HUD: 10 Hz, no stamp of its own) doubles the "
-                   "drift error in steep turns: after the settle time 0.24 deg vs gsoe sim's 0.14 (1.7x)")
 def test_companion_drift_after_the_settle_time_within_1_5x_of_gsoe_sim(flown: Flown) -> None:
+    """After the settle time, mostly in turns: the link's 50 Hz IMU means and the EKF's state time trailing the
+    newest attitude are where the companion's drift differed (the heading half an IMU interval and up to a
+    prediction period ahead, fusion.imu and fusion.estimate)."""
     _print_figures(flown)
     assert _ratio(flown, "drift_mae_settled_deg") <= RATIO_MAX, (flown.companion["drift_mae_settled_deg"],
                                                                  flown.sim["drift_mae_settled_deg"])
