@@ -729,6 +729,7 @@ class MavlinkVehicle:
         self.named_values: dict[str, float] = {}
         self.heading_commands: list[tuple[float, float]] = []  # (t_s, heading_deg)
         self.output_times: dict[str, list[float]] = {}
+        self.version_requests: list[float] = []      # when AUTOPILOT_VERSION was asked for (simulation clock, s)
         self.statustexts: list[tuple[float, str]] = []
         self.problems: list[tuple[float, str]] = []
         self.drift_pairs: list[tuple[float, float, float]] = []  # (t_s, received deg, true deg)
@@ -1017,6 +1018,7 @@ class MavlinkVehicle:
         elif msg.command == mavutil.mavlink.MAV_CMD_REQUEST_MESSAGE and \
                 int(msg.param1) == mavutil.mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
             result = MAV_RESULT_ACCEPTED
+            self.version_requests.append(round(self.t_s, 3))
         self._send(self.conn.mav.command_ack_encode(msg.command, result))
         if result == MAV_RESULT_ACCEPTED and msg.command == mavutil.mavlink.MAV_CMD_REQUEST_MESSAGE:
             major, minor, patch = VEHICLE_FIRMWARE
@@ -1102,6 +1104,7 @@ class MavlinkVehicle:
                 "pos_ned_m": self.truth.pos_ned_m.tolist() if self._truth is not None else None,
                 "yaw_deg": math.degrees(self.truth.yaw_rad) if self._truth is not None else None,
                 "t_s": self.t_s, "dynamics": self.cfg.dynamics, "output_times": self.output_times,
+                "version_requests": self.version_requests,
                 "statustexts": self.statustexts, "problems": self.problems,
                 "miss_m": self.miss_m if math.isfinite(self.miss_m) else None,
                 "miss_t_s": self.miss_t_s if math.isfinite(self.miss_t_s) else None, "passed": self.passed,

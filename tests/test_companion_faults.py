@@ -118,3 +118,13 @@ def test_spoofed_position_never_reaches_the_ekf(flight):
     assert spoofed.sum() >= 5  # the spoofed reports arrived (5 Hz over 2 s) ...
     assert np.all(dist[spoofed] > 0.9 * SPOOF_M)  # ... and the EKF never followed them
     assert np.median(dist[~spoofed]) < 5.0  # while it agrees with the honest fixes
+
+
+def test_the_autopilot_s_version_is_asked_again_when_the_link_comes_back(flight):
+    """A link that comes back may lead to an autopilot rebooted into other firmware (its baro clamp follows the
+    version): the companion asks for AUTOPILOT_VERSION once on connecting and again after the link silence."""
+    _, silence_start_s, silence_end_s = next(f for f in FAULTS if f[0] == "link_silence")
+    asked = np.array(flight.vehicle["version_requests"])
+    assert asked.size >= 2 and asked[0] < silence_start_s, asked
+    again = asked[asked >= silence_end_s]
+    assert again.size and again[0] - silence_end_s <= 10.0, asked
