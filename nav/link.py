@@ -809,9 +809,9 @@ class TelemetryGuard:
 
     def firmware_version(self, major: int, minor: int, patch: int) -> None:
         """The autopilot's flight software version (its AUTOPILOT_VERSION, asked for on connecting and whenever the
-        link comes back).  An
-        ArduPilot's decides the baro temperature clamp of the airspeed's air density (35 degC from 4.0 on, 25 degC
-        before; :mod:`common.atmosphere`); ``baro_temp_clamp_c`` applies until then and to other autopilots."""
+        link comes back).  An ArduPilot's decides the baro temperature clamp of the airspeed's air density (35 degC
+        from 4.0 on, 25 degC before; :mod:`common.atmosphere`); ``baro_temp_clamp_c`` applies until then and to
+        other autopilots."""
         if not all(isinstance(v, int) and 0 <= v < 256 for v in (major, minor, patch)):
             log.warning("autopilot version %r.%r.%r not understood: baro temperature clamp stays %.0f degC",
                         major, minor, patch, self._ground_air.baro_temp_clamp_c)
@@ -1156,7 +1156,6 @@ class CompanionLink:
         from mavsdk.asyncio.plugins.mavlink_direct import MavlinkMessage
 
         answers = self.guard.version_answers if renew else 0
-
         fields = {"target_system": self.target_system, "target_component": self.target_component,
                   "command": MAV_CMD_REQUEST_MESSAGE, "confirmation": 0,
                   "param1": float(MESSAGE_IDS["AUTOPILOT_VERSION"]), "param2": 0.0, "param3": 0.0, "param4": 0.0,
