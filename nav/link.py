@@ -135,8 +135,7 @@ MAV_FRAME_LOCAL_FRD = 20
 MAV_ESTIMATOR_TYPE_VIO = 3
 UINT16_UNKNOWN = 65535
 INT16_UNKNOWN = 32767
-#: MAVLink message ids of the messages the link asks for (rates; AUTOPILOT_VERSION on connecting and whenever the
-#: link comes back)
+#: MAVLink message ids of the messages the link asks for (rates; AUTOPILOT_VERSION once)
 MESSAGE_IDS = {"ATTITUDE": 30, "ATTITUDE_QUATERNION": 31, "HIGHRES_IMU": 105, "SCALED_IMU": 26, "RAW_IMU": 27,
                "SCALED_IMU2": 116, "SCALED_IMU3": 129, "SCALED_PRESSURE": 29, "ALTITUDE": 141, "VFR_HUD": 74,
                "GPS_RAW_INT": 24, "GLOBAL_POSITION_INT": 33, "AUTOPILOT_VERSION": 148}
@@ -623,8 +622,6 @@ class TelemetryGuard:
         self.firmware = ""
         self._autopilot_type: int | None = None          # MAV_AUTOPILOT of the autopilot's own HEARTBEAT
         self._version: tuple[int, int, int] | None = None
-        #: AUTOPILOT_VERSION answers understood (a reconnected autopilot is asked until one more arrives)
-        self.version_answers = 0
 
     def _reject(self, kind: str, reason: str) -> None:
         key = f"{kind}:{reason}"
@@ -808,16 +805,14 @@ class TelemetryGuard:
         return self._version is not None
 
     def firmware_version(self, major: int, minor: int, patch: int) -> None:
-        """The autopilot's flight software version (its AUTOPILOT_VERSION, asked for on connecting and whenever the
-        link comes back).  An ArduPilot's decides the baro temperature clamp of the airspeed's air density (35 degC
-        from 4.0 on, 25 degC before; :mod:`common.atmosphere`); ``baro_temp_clamp_c`` applies until then and to
-        other autopilots."""
+        """The autopilot's flight software version (its AUTOPILOT_VERSION, asked for on connecting).  An
+        ArduPilot's decides the baro temperature clamp of the airspeed's air density (35 degC from 4.0 on, 25 degC
+        before; :mod:`common.atmosphere`); ``baro_temp_clamp_c`` applies until then and to other autopilots."""
         if not all(isinstance(v, int) and 0 <= v < 256 for v in (major, minor, patch)):
             log.warning("autopilot version %r.%r.%r not understood: baro temperature clamp stays %.0f degC",
                         major, minor, patch, self._ground_air.baro_temp_clamp_c)
             return
         self._version = (major, minor, patch)
-        self.version_answers += 1
         self._apply_firmware()
 
     def _apply_firmware(self) -> None:
@@ -1149,19 +1144,17 @@ class CompanionLink:
             except queue.Full:
                 self.stats.dropped_samples += 1
 
-    async def _request_version(self, tries: int = 5, wait_s: float = 2.0, renew: bool = False) -> None:
+    async def _request_version(self, tries: int = 5, wait_s: float = 2.0) -> None:
         """Ask for the autopilot's AUTOPILOT_VERSION (MAV_CMD_REQUEST_MESSAGE) until the guard has it: MAVSDK asks
-        for it on discovery too, but that answer may come before this link subscribed.  ``renew`` (the link came
-        back: the autopilot may have rebooted into other firmware): until one more answer arrives."""
+        for it on discovery too, but that answer may come before this link subscribed."""
         from mavsdk.asyncio.plugins.mavlink_direct import MavlinkMessage
 
-        answers = self.guard.version_answers if renew else 0
         fields = {"target_system": self.target_system, "target_component": self.target_component,
                   "command": MAV_CMD_REQUEST_MESSAGE, "confirmation": 0,
                   "param1": float(MESSAGE_IDS["AUTOPILOT_VERSION"]), "param2": 0.0, "param3": 0.0, "param4": 0.0,
                   "param5": 0.0, "param6": 0.0, "param7": 0.0}
         for _ in range(tries):
-            if self.guard.version_answers > answers:
+            if self.guard.version_known:
                 return
             msg = MavlinkMessage(message_name="COMMAND_LONG", target_system_id=self.target_system,
                                  target_component_id=self.target_component, fields_json=json.dumps(fields))
@@ -1170,10 +1163,9 @@ class CompanionLink:
             except Exception as e:  # noqa: BLE001 - unanswered: the version may still come; asked again below
                 log.debug("AUTOPILOT_VERSION request: %s", e)
             await asyncio.sleep(wait_s)
-        if self.guard.version_answers <= answers:
-            log.warning("the autopilot sent no AUTOPILOT_VERSION%s: baro temperature clamp %.0f degC%s",
-                        " after the link came back" if renew else "", self.guard.baro_temp_clamp_c,
-                        " (the earlier answer's)" if self.guard.version_known else " (baro_temp_clamp_c)")
+        if not self.guard.version_known:
+            log.warning("the autopilot sent no AUTOPILOT_VERSION: baro temperature clamp %.0f degC "
+                        "(baro_temp_clamp_c)", self.guard.baro_temp_clamp_c)
 
     async def _watch(self, system: Any) -> None:
         async for connected in system.is_connected_state():
@@ -1181,8 +1173,6 @@ class CompanionLink:
                 log.warning("autopilot link %s", "restored" if connected else "lost")
                 if connected and self.cfg.request_rates:  # a rebooted autopilot forgot the rates
                     self._tasks.append(asyncio.ensure_future(self._request_rates()))
-                if connected:                              # and may run other firmware
-                    self._tasks.append(asyncio.ensure_future(self._request_version(renew=True)))
             self.stats.connected = bool(connected)
 
     def stop(self, destroy_native: bool = True) -> None:

@@ -122,7 +122,8 @@ def test_spoofed_position_never_reaches_the_ekf(flight):
 
 def test_the_autopilot_s_version_is_asked_again_when_the_link_comes_back(flight):
     """A link that comes back may lead to an autopilot rebooted into other firmware (its baro clamp follows the
-    version): the companion asks for AUTOPILOT_VERSION once on connecting and again after the link silence."""
+    version): AUTOPILOT_VERSION is asked for on connecting (the link, and MAVSDK on discovery) and again after the
+    link silence (MAVSDK on reconnecting; the link's subscription takes the answer)."""
     _, silence_start_s, silence_end_s = next(f for f in FAULTS if f[0] == "link_silence")
     asked = np.array(flight.vehicle["version_requests"])
     assert asked.size >= 2 and asked[0] < silence_start_s, asked
