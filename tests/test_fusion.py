@@ -272,21 +272,31 @@ def test_process_jacobian_matches_finite_differences(seed):
     np.testing.assert_allclose(F, F_fd, rtol=1e-4, atol=1e-7)
 
 
-def test_ideal_imu_dead_reckoning_follows_truth():
-    """No aiding at all: an ideal IMU and AHRS (at the IMU rate) integrated through turns and climbs stay on the
-    true trajectory (gravity sign, body-to-NED rotation, zero-order hold of the specific force)."""
-    ideal = TruthConfig(duration_s=30.0, imu_div=3, ahrs_div=3, accel_noise_m_s2=0.0, accel_bias_std_m_s2=0.0,
-                        ahrs_noise_deg=0.0, ahrs_rp_bias_std_deg=0.0, ahrs_yaw_bias_deg=0.0,
-                        segments=((5.0, 0.0), (20.0, 12.0)))
-    fl = make_flight(ideal)
-    ekf = NavEkf(CFG0, t_us=0, pos_ned_m=fl.pos[0], vel_ned_m_s=fl.vel[0])
+def _ideal(imu_div: int, duration_s: float, segments: tuple[tuple[float, float], ...], **kw) -> TruthConfig:
+    """Ideal IMU and AHRS, both every ``imu_div`` grid steps (600 Hz grid)."""
+    return TruthConfig(duration_s=duration_s, imu_div=imu_div, ahrs_div=imu_div, accel_noise_m_s2=0.0,
+                       accel_bias_std_m_s2=0.0, ahrs_noise_deg=0.0, ahrs_rp_bias_std_deg=0.0, ahrs_yaw_bias_deg=0.0,
+                       segments=segments, **kw)
+
+
+def _dead_reckon(fl, ekf: NavEkf, after_imu=None) -> NavEkf:
+    """Push the flight's IMU samples with its attitude, nothing else; ``after_imu(sample)`` after each."""
     att = None
     for _, _, kind, p in fl.events:
         if kind == "att":
             att = p
         elif kind == "imu":
             ekf.predict(p, att)
-    est = ekf.estimate()
+            if after_imu is not None:
+                after_imu(p)
+    return ekf
+
+
+def test_ideal_imu_dead_reckoning_follows_truth():
+    """No aiding at all: an ideal IMU and AHRS (at the IMU rate) integrated through turns and climbs stay on the
+    true trajectory (gravity sign, body-to-NED rotation, zero-order hold of the specific force)."""
+    fl = make_flight(_ideal(3, 30.0, ((5.0, 0.0), (20.0, 12.0))))
+    est = _dead_reckon(fl, NavEkf(CFG0, t_us=0, pos_ned_m=fl.pos[0], vel_ned_m_s=fl.vel[0])).estimate()
     k = fl.index(est.t_us)
     travelled = np.sum(np.linalg.norm(np.diff(fl.pos[: k + 1], axis=0), axis=1))
     assert travelled > 500.0
@@ -299,19 +309,10 @@ def test_imu_at_a_links_rate_is_rotated_at_its_intervals_middle():
     """IMU and AHRS at 50 Hz, a MAVLink link's rate (each IMU sample the mean over the 20 ms it ends): through
     30 s of turns the velocity stays within 0.01 m/s of the truth and the position within 0.2 m.  Rotated by the
     attitude at its stamp without the half-interval, a sample leads by 10 ms: 0.067 m/s and 1.2 m here."""
-    fifty_hz = TruthConfig(duration_s=30.0, imu_div=12, ahrs_div=12, accel_noise_m_s2=0.0, accel_bias_std_m_s2=0.0,
-                           ahrs_noise_deg=0.0, ahrs_rp_bias_std_deg=0.0, ahrs_yaw_bias_deg=0.0,
-                           segments=((5.0, 0.0), (20.0, 12.0)))
+    fifty_hz = _ideal(12, 30.0, ((5.0, 0.0), (20.0, 12.0)))
     assert fifty_hz.grid_hz / fifty_hz.imu_div == 50.0
     fl = make_flight(fifty_hz)
-    ekf = NavEkf(CFG0, t_us=0, pos_ned_m=fl.pos[0], vel_ned_m_s=fl.vel[0])
-    att = None
-    for _, _, kind, p in fl.events:
-        if kind == "att":
-            att = p
-        elif kind == "imu":
-            ekf.predict(p, att)
-    est = ekf.estimate()
+    est = _dead_reckon(fl, NavEkf(CFG0, t_us=0, pos_ned_m=fl.pos[0], vel_ned_m_s=fl.vel[0])).estimate()
     k = fl.index(est.t_us)
     np.testing.assert_allclose(est.vel_ned_m_s, fl.vel[k], atol=0.01)
     np.testing.assert_allclose(est.pos_ne_m, fl.pos[k, :2], atol=0.2)
@@ -321,19 +322,14 @@ def test_imu_sample_held_past_its_stamp_is_rotated_at_the_extension_s_middle():
     """A measurement between two IMU samples is fused after a prediction that holds the last sample past its stamp:
     in a steady 12 deg/s turn with 50 Hz IMU means and a (gated-out) baro sample 7 ms after each, the velocity stays
     within 0.004 m/s after 10 s (0.008 without the hold's half-extension rotation, 0.017 with it reversed)."""
-    turn = TruthConfig(duration_s=10.0, imu_div=12, ahrs_div=12, accel_noise_m_s2=0.0, accel_bias_std_m_s2=0.0,
-                       ahrs_noise_deg=0.0, ahrs_rp_bias_std_deg=0.0, ahrs_yaw_bias_deg=0.0, height_amp_m=0.0,
-                       segments=((40.0, 12.0),))
-    fl = make_flight(turn)
+    fl = make_flight(_ideal(12, 10.0, ((40.0, 12.0),), height_amp_m=0.0))
     ekf = NavEkf(CFG0.replace(timing={"fusion_delay_s": 0.0}), t_us=0, pos_ned_m=fl.pos[0], vel_ned_m_s=fl.vel[0])
-    att = None
-    for _, _, kind, p in fl.events:
-        if kind == "att":
-            att = p
-        elif kind == "imu":
-            ekf.predict(p, att)
-            k = min(fl.index(p.t_us + 7000), len(fl.pos) - 1)
-            ekf.fuse_baro(p.t_us + 7000, float(-fl.pos[k, 2]) + 3000.0)   # predicted to, then refused by the gate
+
+    def baro_7_ms_later(p: ImuSample) -> None:          # predicted to, then refused by the gate
+        k = min(fl.index(p.t_us + 7000), len(fl.pos) - 1)
+        ekf.fuse_baro(p.t_us + 7000, float(-fl.pos[k, 2]) + 3000.0)
+
+    _dead_reckon(fl, ekf, baro_7_ms_later)
     baro = ekf.status()["baro"]
     assert baro.n_fused == 0 and baro.n_rejected > 400
     est = ekf.estimate()
@@ -344,21 +340,17 @@ def test_heading_is_the_estimates_time_s_in_a_turn():
     """The estimate is at the state's time, while the attitude it takes the heading from is the last IMU sample's,
     up to a prediction period later: in a 12 deg/s turn, read after every IMU sample, the heading is the true
     heading at the estimate's time within 0.02 deg (the attitude's own stamp would put it up to 0.6 deg ahead)."""
-    turn = TruthConfig(duration_s=12.0, imu_div=12, ahrs_div=12, accel_noise_m_s2=0.0, accel_bias_std_m_s2=0.0,
-                       ahrs_noise_deg=0.0, ahrs_rp_bias_std_deg=0.0, ahrs_yaw_bias_deg=0.0,
-                       segments=((2.0, 0.0), (20.0, 12.0)))
-    fl = make_flight(turn)
+    fl = make_flight(_ideal(12, 12.0, ((2.0, 0.0), (20.0, 12.0))))
     ekf = NavEkf(CFG0, t_us=0, pos_ned_m=fl.pos[0], vel_ned_m_s=fl.vel[0])
-    att, errors_deg, ahead_us = None, [], []
-    for _, _, kind, p in fl.events:
-        if kind == "att":
-            att = p
-        elif kind == "imu":
-            ekf.predict(p, att)
-            est = ekf.estimate()
-            if est.t_us > 3_000_000:
-                errors_deg.append(math.degrees(angle_diff(est.heading_rad, fl.yaw[fl.index(est.t_us)])))
-                ahead_us.append(p.t_us - est.t_us)
+    errors_deg, ahead_us = [], []
+
+    def read(p: ImuSample) -> None:
+        est = ekf.estimate()
+        if est.t_us > 3_000_000:
+            errors_deg.append(math.degrees(angle_diff(est.heading_rad, fl.yaw[fl.index(est.t_us)])))
+            ahead_us.append(p.t_us - est.t_us)
+
+    _dead_reckon(fl, ekf, read)
     assert max(ahead_us) >= 30_000                 # the state's time does trail the IMU samples read
     assert max(abs(e) for e in errors_deg) < 0.02, max(errors_deg, key=abs)
 
