@@ -272,9 +272,7 @@ def run(args: argparse.Namespace) -> int:
                                                        tmp)
     results["host_after"] = host_reference()     # a shared host's speed drifts: the reference at both ends
     print(describe(results["host"]))
-    print(f"  after the bench: Python loop {results['host_after']['python_loop_ns']:.0f} ns/iteration, NumPy "
-          f"{results['host_after']['numpy_matmul_24_us']:.2f} us, matchTemplate "
-          f"{results['host_after']['match_template_us']:.0f} us")
+    print(f"  after the bench: {describe(results['host_after'])}")
     print(f"{'':36s}{'median ms/frame':>16s}{'p95':>8s}{'vs naive':>10s}")
     for key in ("ipp_on", "ipp_off"):
         r = results[key]

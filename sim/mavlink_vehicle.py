@@ -90,7 +90,7 @@ import socket
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal, Protocol
 
 import numpy as np
@@ -550,8 +550,6 @@ class BellyCamera:
                  config_path: str | None = None, mount_yaw_error_deg: float = 0.0) -> None:
         """``mount_yaw_error_deg``: the physical camera is turned this much further (clockwise, about the body z axis)
         than the configuration's ``mount_rpy_deg`` says: the mount error a calibration flight finds."""
-        import dataclasses
-
         from gsoe.camera import CameraModel
         from pipeline.config import load_gsoe_config
         from sim.render import CameraRenderer
@@ -559,8 +557,7 @@ class BellyCamera:
 
         gsoe_cfg, _ = load_gsoe_config(config_path)
         r, p, y = gsoe_cfg.camera.mount_rpy_deg
-        self.camera = CameraModel.from_config(dataclasses.replace(gsoe_cfg.camera,
-                                                                  mount_rpy_deg=(r, p, y + mount_yaw_error_deg)))
+        self.camera = CameraModel.from_config(replace(gsoe_cfg.camera, mount_rpy_deg=(r, p, y + mount_yaw_error_deg)))
         self.renderer = CameraRenderer(self.camera, GroundWorld.from_name(texture, seed=seed))
         s = gsoe_cfg.stab
         focal = s.focal_px if s.focal_px > 0 else gsoe_cfg.camera.fx_px

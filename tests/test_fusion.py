@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -32,7 +33,7 @@ from fusion.state import S, StateLayout
 from fusion.status import REASON_GATE, REASON_NUMERIC, StatusRow
 from gsoe.rotation import R_nb_from_euler
 from pipeline.config import load_gsoe_config
-from tests.fusion_truth import TruthConfig, filter_config, make_flight, run_ekf
+from tests.fusion_truth import Flight, TruthConfig, filter_config, make_flight, run_ekf
 
 CFG0 = filter_config()          # the defaults, with the test truth's optical error model and no fusion delay
 G_DOWN_SPECIFIC_FORCE = np.array([0.0, 0.0, -9.80665])   # level, unaccelerated: the accelerometer reads -g on z
@@ -279,13 +280,14 @@ def _ideal(imu_div: int, duration_s: float, segments: tuple[tuple[float, float],
                        segments=segments, **kw)
 
 
-def _dead_reckon(fl, ekf: NavEkf, after_imu=None) -> NavEkf:
+def _dead_reckon(fl: Flight, ekf: NavEkf, after_imu: Callable[[ImuSample], None] | None = None) -> NavEkf:
     """Push the flight's IMU samples with its attitude, nothing else; ``after_imu(sample)`` after each."""
     att = None
     for _, _, kind, p in fl.events:
         if kind == "att":
             att = p
         elif kind == "imu":
+            assert att is not None                      # the truth's attitude starts at t = 0
             ekf.predict(p, att)
             if after_imu is not None:
                 after_imu(p)
